@@ -1,0 +1,87 @@
+"""`ssp-rehab ik` and `ssp-rehab fk`: one robot's kinematics, in mm and degrees at this edge."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from core.kinematics import ForwardKinematics, ForwardKinematicsError, UnreachablePoseError, inverse_kinematics
+from server.cli.output import console, emit, fail
+from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
+
+
+def pose_si_from_mm_deg(pose_mm_deg: list[float]) -> np.ndarray:
+    x, y, z, roll, pitch, yaw = pose_mm_deg
+    return np.array([x / 1e3, y / 1e3, z / 1e3, math.radians(roll), math.radians(pitch), math.radians(yaw)])
+
+
+def pose_mm_deg_from_si(pose: np.ndarray) -> list[float]:
+    return [*(float(v) * 1e3 for v in pose[:3]), *(math.degrees(float(v)) for v in pose[3:])]
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def ik(
+        pose: tuple[float, float, float, float, float, float] = typer.Option(
+            ..., "--pose", help="X Y Z (mm) ROLL PITCH YAW (deg)", metavar="X Y Z ROLL PITCH YAW"
+        ),
+        as_json: bool = typer.Option(False, "--json"),
+        robot_file: Path | None = ROBOT_OPTION,
+    ) -> None:
+        """Slider positions (mm along each rail, REFERENCE.md order) for one platform pose."""
+        try:
+            robot = twin_from_option(robot_file).robot
+            solution = inverse_kinematics(robot, pose_si_from_mm_deg(list(pose)))
+        except (UnreachablePoseError, DescriptionError, ValueError) as error:
+            raise fail(str(error), as_json=as_json) from error
+        data: dict[str, Any] = {
+            "pose": {
+                "x_mm": pose[0],
+                "y_mm": pose[1],
+                "z_mm": pose[2],
+                "roll_deg": pose[3],
+                "pitch_deg": pose[4],
+                "yaw_deg": pose[5],
+            },
+            "sliders_mm": (solution.slider_positions_m[0] * 1e3).tolist(),
+            "base_cone_deg": np.degrees(solution.base_cone_rad[0]).tolist(),
+            "platform_cone_deg": np.degrees(solution.platform_cone_rad[0]).tolist(),
+        }
+
+        def human(d: dict[str, Any]) -> None:
+            for index, value in enumerate(d["sliders_mm"], start=1):
+                console.print(f"slider {index}: {value:10.2f} mm")
+
+        emit(data, as_json=as_json, human=human)
+
+    @app.command()
+    def fk(
+        sliders: tuple[float, float, float, float, float, float] = typer.Option(
+            ..., "--sliders", help="six slider positions (mm)", metavar="S1 S2 S3 S4 S5 S6"
+        ),
+        as_json: bool = typer.Option(False, "--json"),
+        robot_file: Path | None = ROBOT_OPTION,
+    ) -> None:
+        """Platform pose (mm, deg) for six slider positions, by Newton from the neutral pose."""
+        try:
+            robot = twin_from_option(robot_file).robot
+            result = ForwardKinematics(robot).solve(np.asarray(sliders) / 1e3)
+        except (ForwardKinematicsError, DescriptionError, ValueError) as error:
+            raise fail(str(error), as_json=as_json) from error
+        pose = pose_mm_deg_from_si(result.pose)
+        data = {
+            "pose": dict(zip(["x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"], pose, strict=True)),
+            "iterations": result.iterations,
+            "residual_mm": result.residual_m * 1e3,
+        }
+
+        def human(d: dict[str, Any]) -> None:
+            for key, value in d["pose"].items():
+                console.print(f"{key:>9}: {value:12.6f}")
+            console.print(f"{d['iterations']} iterations, residual {d['residual_mm']:.3g} mm")
+
+        emit(data, as_json=as_json, human=human)

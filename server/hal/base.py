@@ -1,0 +1,264 @@
+"""The hardware abstraction layer: the one seam between the control core and whatever moves.
+
+Lifecycle, after ros2_control's hardware interface:
+
+    UNCONFIGURED --configure()--> CONFIGURED (communication up, power off)
+    CONFIGURED --activate()--> ACTIVE (drives enabled, cyclic read()/write())
+    ACTIVE --deactivate()--> CONFIGURED
+    any --fault--> FAULT --reset_fault()--> CONFIGURED
+    any --emergency_stop()--> ESTOP (quick stop, then drives disabled) --reset_estop()--> CONFIGURED
+
+`write()` validates every command here, in the base class, before any backend sees it: a NaN, a
+set-point outside the stroke or a jump beyond one tick's travel is refused with `CommandRejectedError`
+(field, value, limit), nothing reaches a drive, and the HAL quick-stops into FAULT.
+
+Axis order: twelve axes, the right robot's sliders 1–6 then the left robot's 1–6 (REFERENCE.md order).
+Positions are metres along each rail in that robot's base frame.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.robot import TwinRobot
+
+AXIS_COUNT = 12
+FEET = ("right", "left")
+
+
+class HalState(enum.Enum):
+    UNCONFIGURED = "unconfigured"
+    CONFIGURED = "configured"
+    ACTIVE = "active"
+    FAULT = "fault"
+    ESTOP = "estop"
+
+
+class DriveState(enum.IntEnum):
+    """CiA 402 power state machine states, as every backend reports them per axis."""
+
+    NOT_READY_TO_SWITCH_ON = 0
+    SWITCH_ON_DISABLED = 1
+    READY_TO_SWITCH_ON = 2
+    SWITCHED_ON = 3
+    OPERATION_ENABLED = 4
+    QUICK_STOP_ACTIVE = 5
+    FAULT_REACTION_ACTIVE = 6
+    FAULT = 7
+
+
+class HalError(RuntimeError):
+    """A lifecycle call made in the wrong state, or a backend failure."""
+
+
+class CommandRejectedError(ValueError):
+    """A command refused before reaching any drive; names the axis field, the value and the limit."""
+
+    def __init__(self, field_name: str, value: float, limit: str) -> None:
+        self.field = field_name
+        self.value = value
+        self.limit = limit
+        super().__init__(f"{field_name} = {value!r}: {limit}")
+
+
+@dataclass
+class HalCommand:
+    """Set-points for one tick; preallocated once and filled in place by the worker."""
+
+    positions_m: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT))
+    velocity_feedforward_m_s: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT))
+    force_feedforward_n: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT))
+
+
+@dataclass
+class HalReading:
+    """What one read() returns; preallocated once and filled in place by the backend."""
+
+    positions_m: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT))
+    velocities_m_s: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT))
+    drive_forces_n: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT))
+    drive_states: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT, dtype=np.int8))
+    homed: np.ndarray = field(default_factory=lambda: np.zeros(AXIS_COUNT, dtype=bool))
+    # Force plate under each foot (right, left): vertical force and centre of pressure (x, y) in the
+    # foot-plate frame; harness load cell along the rope.
+    plate_force_z_n: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    plate_cop_m: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    harness_load_n: float = 0.0
+    monotonic_ns: int = 0  # host time.perf_counter_ns() at the read
+    hardware_time_s: float = 0.0  # the backend's own clock (sim time, drive SYNC count · period)
+
+
+class HardwareInterface(abc.ABC):
+    """One backend for the twelve slider axes and the sensors. Subclasses implement the `_` hooks."""
+
+    def __init__(self, twin: TwinRobot, control_period_s: float) -> None:
+        if not 0.0 < control_period_s <= 0.01:
+            raise CommandRejectedError("control_period_s", control_period_s, "must be in (0, 0.01] s")
+        self.twin = twin
+        self.control_period_s = control_period_s
+        self.state = HalState.UNCONFIGURED
+        self.last_fault: str | None = None
+        robots = [twin.robot_for(side) for side in FEET]
+        self.stroke_min_m = np.concatenate([r.stroke_min_m for r in robots])
+        self.stroke_max_m = np.concatenate([r.stroke_max_m for r in robots])
+        # Largest set-point change one tick may ask for: the velocity limit over one period, with a
+        # 10 % margin for rounding in the command path.
+        self.max_step_m = 1.1 * robots[0].limits.slider_velocity_max_m_s * control_period_s
+        self._last_command_m: np.ndarray | None = None
+
+    # --- lifecycle ---------------------------------------------------------------------------------
+
+    def configure(self) -> None:
+        self._require(HalState.UNCONFIGURED, "configure")
+        self._on_configure()
+        self.state = HalState.CONFIGURED
+
+    def activate(self) -> None:
+        self._require(HalState.CONFIGURED, "activate")
+        self._on_activate()
+        self._last_command_m = None
+        self.state = HalState.ACTIVE
+
+    def deactivate(self) -> None:
+        if self.state is HalState.ACTIVE:
+            self._on_deactivate()
+            self.state = HalState.CONFIGURED
+
+    def shutdown(self) -> None:
+        """Power off and close communication, from any state."""
+        if self.state is HalState.ACTIVE:
+            self._on_deactivate()
+        if self.state is not HalState.UNCONFIGURED:
+            self._on_shutdown()
+        self.state = HalState.UNCONFIGURED
+
+    def emergency_stop(self) -> None:
+        """Quick stop every axis, then disable the drives. Latched until reset_estop()."""
+        if self.state is not HalState.UNCONFIGURED:
+            self._on_quick_stop()
+            self._on_disable()
+        self.state = HalState.ESTOP
+
+    def reset_estop(self) -> None:
+        """Clear the latch; drives stay disabled (CONFIGURED) so a reset never restarts motion."""
+        self._require(HalState.ESTOP, "reset_estop")
+        self.state = HalState.CONFIGURED
+
+    def fault(self, reason: str) -> None:
+        """Enter FAULT with a controlled quick stop; used by backends and by rejected commands."""
+        self.last_fault = reason
+        if self.state in (HalState.ACTIVE, HalState.CONFIGURED):
+            self._on_quick_stop()
+        if self.state is not HalState.ESTOP:
+            self.state = HalState.FAULT
+
+    def reset_fault(self) -> None:
+        self._require(HalState.FAULT, "reset_fault")
+        self._on_reset_fault()
+        self.last_fault = None
+        self.state = HalState.CONFIGURED
+
+    def home(self) -> None:
+        """Home every axis (CiA 402 homing on drives; immediate on the sim and kinematic backends)."""
+        self._require(HalState.CONFIGURED, "home")
+        self._on_home()
+
+    # --- cyclic ------------------------------------------------------------------------------------
+
+    def read(self, out: HalReading) -> None:
+        if self.state is HalState.UNCONFIGURED:
+            raise HalError("read: the HAL is not configured")
+        self._on_read(out)
+
+    def write(self, command: HalCommand) -> None:
+        """Validate, then send. A rejected command never reaches a drive and faults the HAL."""
+        self._require(HalState.ACTIVE, "write")
+        try:
+            self.validate(command)
+        except CommandRejectedError as rejected:
+            self.fault(str(rejected))
+            raise
+        self._on_write(command)
+        if self._last_command_m is None:
+            self._last_command_m = command.positions_m.copy()
+        else:
+            self._last_command_m[:] = command.positions_m
+
+    def validate(self, command: HalCommand) -> None:
+        positions = command.positions_m
+        for name in ("positions_m", "velocity_feedforward_m_s", "force_feedforward_n"):
+            values = getattr(command, name)
+            if values.shape != (AXIS_COUNT,):
+                raise CommandRejectedError(
+                    name, float("nan"), f"expected {AXIS_COUNT} values, got shape {values.shape}"
+                )
+            if not np.all(np.isfinite(values)):
+                axis = int(np.argmax(~np.isfinite(values)))
+                raise CommandRejectedError(f"{name}[{self.axis_name(axis)}]", float(values[axis]), "must be finite")
+        below, above = positions < self.stroke_min_m, positions > self.stroke_max_m
+        if np.any(below | above):
+            axis = int(np.argmax(below | above))
+            raise CommandRejectedError(
+                f"positions_m[{self.axis_name(axis)}]",
+                float(positions[axis]),
+                f"stroke is [{self.stroke_min_m[axis]:.4f}, {self.stroke_max_m[axis]:.4f}] m",
+            )
+        reference = self._last_command_m if self._last_command_m is not None else self._measured_positions()
+        jumps = np.abs(positions - reference)
+        if np.any(jumps > self.max_step_m):
+            axis = int(np.argmax(jumps))
+            raise CommandRejectedError(
+                f"positions_m[{self.axis_name(axis)}]",
+                float(positions[axis]),
+                f"jump of {jumps[axis] * 1e3:.3f} mm exceeds one tick's travel {self.max_step_m * 1e3:.3f} mm",
+            )
+
+    @staticmethod
+    def axis_name(axis: int) -> str:
+        return f"{FEET[axis // 6]} slider {axis % 6 + 1}"
+
+    def _require(self, state: HalState, action: str) -> None:
+        if self.state is not state:
+            raise HalError(f"{action}: HAL is {self.state.value}, must be {state.value}")
+
+    # --- backend hooks -----------------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _on_configure(self) -> None: ...
+
+    @abc.abstractmethod
+    def _on_activate(self) -> None: ...
+
+    @abc.abstractmethod
+    def _on_deactivate(self) -> None: ...
+
+    @abc.abstractmethod
+    def _on_quick_stop(self) -> None:
+        """Bring every axis to a controlled stop (CiA 402 quick stop, 0x605A)."""
+
+    @abc.abstractmethod
+    def _on_disable(self) -> None:
+        """Remove drive power (after the quick stop)."""
+
+    @abc.abstractmethod
+    def _on_reset_fault(self) -> None: ...
+
+    @abc.abstractmethod
+    def _on_home(self) -> None: ...
+
+    @abc.abstractmethod
+    def _on_read(self, out: HalReading) -> None: ...
+
+    @abc.abstractmethod
+    def _on_write(self, command: HalCommand) -> None: ...
+
+    @abc.abstractmethod
+    def _measured_positions(self) -> np.ndarray:
+        """Latest measured axis positions (m), the reference for the first command's jump check."""
+
+    def _on_shutdown(self) -> None:  # noqa: B027 — optional hook
+        """Close communication; backends with a bus override it."""
