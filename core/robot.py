@@ -7,6 +7,7 @@ refused with a `DescriptionError` that names the field, the value and the limit.
 
 from __future__ import annotations
 
+import functools
 import math
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -32,7 +33,10 @@ class DescriptionError(ValueError):
 
 
 def _require_finite(field_name: str, values: Iterable[float] | float) -> None:
-    array = np.atleast_1d(np.asarray(values, dtype=float))
+    try:
+        array = np.atleast_1d(np.asarray(values, dtype=float))
+    except (TypeError, ValueError) as error:
+        raise DescriptionError(field_name, values, "must be a number (or a list of numbers)") from error
     if not np.all(np.isfinite(array)):
         raise DescriptionError(field_name, np.asarray(values).tolist(), "must be a finite number (no NaN/inf)")
 
@@ -64,6 +68,9 @@ class MotionLimits:
     # Half-angle of each spherical joint's cone around the rod direction at the neutral pose.
     base_joint_cone_rad: float = math.radians(40.0)
     platform_joint_cone_rad: float = math.radians(40.0)
+    # Largest allowed condition number of the (dimensionless) twist Jacobian: keeps every pose away
+    # from the singularities that lie inside the stroke and cone limits (docs/kinematics.md).
+    condition_number_max: float = 40.0
 
 
 @dataclass(frozen=True)
@@ -280,7 +287,12 @@ class TwinRobot:
         return self.right if side == "right" else self.left
 
     def robot_for(self, side: str) -> SSPRobot:
-        return self.robot.mirrored() if self.placement(side).mirrored else self.robot
+        return self._mirrored_robot if self.placement(side).mirrored else self.robot
+
+    @functools.cached_property
+    def _mirrored_robot(self) -> SSPRobot:
+        # Built (and validated) once: per-tick callers ask for it at every sample.
+        return self.robot.mirrored()
 
 
 def default_twin() -> TwinRobot:
@@ -322,10 +334,7 @@ def twin_to_dict(twin: TwinRobot) -> dict[str, Any]:
 
 
 def _build(cls: type, section: str, data: Mapping[str, Any], **overrides: Any) -> Any:
-    known = {f.name for f in fields(cls)}
-    unknown = set(data) - known - set(overrides)
-    if unknown:
-        raise DescriptionError(f"{section}.{sorted(unknown)[0]}", data[sorted(unknown)[0]], "unknown field")
+    _refuse_unknown_keys(section, data, {f.name for f in fields(cls)} - set(overrides))
     values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k not in overrides}
     try:
         return cls(**values, **overrides)
@@ -333,7 +342,16 @@ def _build(cls: type, section: str, data: Mapping[str, Any], **overrides: Any) -
         raise DescriptionError(section, dict(data), f"malformed section: {error}") from error
 
 
+def _refuse_unknown_keys(section: str, data: Mapping[str, Any], known: set[str]) -> None:
+    unknown = sorted(set(data) - known)
+    if unknown:
+        name = f"{section}.{unknown[0]}" if section else unknown[0]
+        raise DescriptionError(name, data[unknown[0]], "unknown field")
+
+
 def twin_from_dict(data: Mapping[str, Any]) -> TwinRobot:
+    _refuse_unknown_keys("", data, {"robot", "twin"})
+    _refuse_unknown_keys("twin", data.get("twin", {}), {"right", "left"})
     robot_data = dict(data.get("robot", {}))
     sliders = [_build(Slider, f"robot.sliders[{i}]", s) for i, s in enumerate(robot_data.pop("sliders", []), 1)]
     limits = _build(MotionLimits, "robot.limits", robot_data.pop("limits", {}))

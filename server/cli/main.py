@@ -17,7 +17,14 @@ app = typer.Typer(
 # Each module exposes `register(app: typer.Typer) -> None`.
 COMMAND_MODULES = (
     "server.cli.kinematics_commands",
+    "server.cli.workspace_commands",
     "server.cli.bench_commands",
+    "server.cli.realtime_commands",
+    "server.cli.dynamics_commands",
+    "server.cli.drives_commands",
+    "server.cli.service_commands",
+    "server.cli.falls_commands",
+    "server.cli.washout_commands",
 )
 
 for _module_name in COMMAND_MODULES:

@@ -1,0 +1,300 @@
+"""Multi-objective tuning of the classical washout (paper §4.2, Formulas 16–19) with pymoo's NSGA-II,
+the standard successor of the paper's MOGA.
+
+Variables: [ω_a, ω_a′, ω_h] and optionally one damping ξ shared by Formulas 12 and 13 (the paper writes
+one ξ). Objectives (both minimised, normalised as in `core.fidelity`): (1) perception error, (2) platform
+motion. Constraints (≤ 0 is feasible): (1) rail stroke, the largest excursion of any slider of either
+robot beyond its stroke, from the twin's inverse kinematics linearised about neutral (exact IK of 100
+candidates × 750 samples costs more than the whole search; the chosen compromise is then checked with
+the full IK and the result says whether it passed); (2) the tilt-rate limit, the peak rate of the
+commanded tilt before the limiter minus the limit, so the tuned filter itself keeps the tilt
+imperceptible and the limiter never distorts it.
+Input: the paper's acceleration square wave along x (period 2 s, ±2 m/s², 10 s), followed by 5 s of
+rest so that a slow return to neutral is penalised. The whole population is one stacked design run
+through `core.washout.run_washout` at once; its filters run in parallel over rows.
+
+The compromise is the knee of the front (largest distance from the line through the two extremes,
+objectives normalised to the front's range), chosen among the front's points that improve on the
+baseline in both objectives when there are any.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from pymoo.algorithms.moo.nsga2 import NSGA2
+from pymoo.config import Config
+from pymoo.core.callback import Callback
+from pymoo.core.problem import Problem
+from pymoo.optimize import minimize
+
+from core.fidelity import OBJECTIVE_NAMES, FidelityMetrics, FidelityScales, fidelity_of_signals
+from core.kinematics import IKSolution, LegViolation, twin_inverse_kinematics
+from core.robot import TwinRobot, default_twin
+from core.shaping import ParameterError, require_positive
+from core.vestibular import VestibularModel, VestibularParameters
+from core.washout import WashoutParameters, WashoutSignals, backward_rate, baseline_parameters, design, run_washout
+
+Config.warnings["not_compiled"] = False
+
+TUNED_FREQUENCIES = ("translational_break_rad_s", "translational_first_order_break_rad_s", "tilt_break_rad_s")
+SHARED_DAMPING = ("translational_damping", "tilt_damping")
+DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
+    "translational_break_rad_s": (0.2, 5.0),
+    "translational_first_order_break_rad_s": (0.02, 2.0),
+    "tilt_break_rad_s": (0.05, 5.0),
+    "damping": (0.5, 2.0),
+}
+CONSTRAINT_NAMES = ("stroke_excess_m", "tilt_rate_excess_rad_s")
+
+
+def paper_square_wave(
+    sample_period_s: float,
+    *,
+    amplitude_m_s2: float = 2.0,
+    period_s: float = 2.0,
+    duration_s: float = 10.0,
+    rest_s: float = 5.0,
+    axis: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's tuning input (Figure 14): specific force (N, 3) and zero angular velocity (N, 3)."""
+    for name, value in (("sample_period_s", sample_period_s), ("period_s", period_s), ("duration_s", duration_s)):
+        require_positive(name, value)
+    time_s = np.arange(round((duration_s + rest_s) / sample_period_s)) * sample_period_s
+    phase = np.floor(2.0 * time_s / period_s + 1e-9)  # half-periods; the epsilon keeps exact edges on the grid
+    wave = np.where(phase % 2 == 0, amplitude_m_s2, -amplitude_m_s2)
+    force = np.zeros((len(time_s), 3))
+    force[:, axis] = np.where(time_s < duration_s - 1e-12, wave, 0.0)
+    return force, np.zeros_like(force)
+
+
+class WashoutTuningProblem(Problem):
+    """The paper's two objectives and two constraints over a whole population per call."""
+
+    def __init__(
+        self,
+        *,
+        baseline: WashoutParameters | None = None,
+        twin: TwinRobot | None = None,
+        sample_period_s: float = 0.02,
+        tune_damping: bool = False,
+        vestibular: VestibularParameters | None = None,
+        scales: FidelityScales | None = None,
+        bounds: dict[str, tuple[float, float]] | None = None,
+    ) -> None:
+        self.baseline = baseline or baseline_parameters()
+        self.twin = twin or default_twin()
+        self.sample_period_s = float(sample_period_s)
+        self.tune_damping = tune_damping
+        self.variable_names = (*TUNED_FREQUENCIES, "damping") if tune_damping else TUNED_FREQUENCIES
+        limits = {**DEFAULT_BOUNDS, **(bounds or {})}
+        for name in self.variable_names:
+            low, high = limits[name]
+            require_positive(f"bounds.{name}", [low, high])
+            if not low < high:
+                raise ParameterError(f"bounds.{name}", [low, high], "lower bound must be < upper bound")
+        self.vestibular = VestibularModel(vestibular, self.sample_period_s)
+        self.scales = scales or FidelityScales()
+        self.specific_force, self.angular_velocity = paper_square_wave(self.sample_period_s)
+        self._neutral_sliders_m, self._stroke_jacobian = _linearised_twin_ik(self.twin)
+        robots = [self.twin.robot_for(side) for side in self.twin.sides]
+        self._stroke_min_m = np.concatenate([robot.stroke_min_m for robot in robots])
+        self._stroke_max_m = np.concatenate([robot.stroke_max_m for robot in robots])
+        super().__init__(
+            n_var=len(self.variable_names),
+            n_obj=len(OBJECTIVE_NAMES),
+            n_ieq_constr=len(CONSTRAINT_NAMES),
+            xl=np.array([limits[n][0] for n in self.variable_names]),
+            xu=np.array([limits[n][1] for n in self.variable_names]),
+        )
+
+    def variables_of(self, params: WashoutParameters) -> np.ndarray:
+        values = [getattr(params, name) for name in TUNED_FREQUENCIES]
+        return np.array([*values, params.translational_damping] if self.tune_damping else values)
+
+    def parameters(self, x: np.ndarray) -> list[WashoutParameters]:
+        """One validated parameter set per row of x (P, n_var)."""
+        result = []
+        for row in np.atleast_2d(x):
+            changes: dict[str, Any] = dict(zip(TUNED_FREQUENCIES, map(float, row[:3]), strict=True))
+            if self.tune_damping:
+                changes.update(dict.fromkeys(SHARED_DAMPING, float(row[3])))
+            result.append(replace(self.baseline, **changes))
+        return result
+
+    def run(self, x: np.ndarray) -> tuple[WashoutSignals, FidelityMetrics]:
+        """Washout and metrics of the whole population, stacked (P, ..., N)."""
+        stacked = design(self.parameters(x), self.sample_period_s)
+        signals = run_washout(stacked, self.specific_force.T, self.angular_velocity.T)
+        metrics = fidelity_of_signals(
+            signals.pose,
+            signals.velocity,
+            signals.acceleration,
+            self.specific_force.T,
+            self.angular_velocity.T,
+            self.vestibular,
+            self.scales,
+        )
+        return signals, metrics
+
+    def objectives_and_constraints(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        signals, metrics = self.run(x)
+        objectives = np.stack([getattr(metrics, name) for name in OBJECTIVE_NAMES], axis=-1)
+        constraints = np.stack([self._stroke_excess_m(signals.pose), self._tilt_rate_excess(signals)], axis=-1)
+        return objectives, constraints
+
+    def _evaluate(self, x: np.ndarray, out: dict[str, Any], *args: Any, **kwargs: Any) -> None:
+        out["F"], out["G"] = self.objectives_and_constraints(x)
+
+    def _stroke_excess_m(self, poses: np.ndarray) -> np.ndarray:
+        """Linearised twin IK about neutral: slider excursion beyond the stroke, (P,) m."""
+        sliders = self._neutral_sliders_m[:, None] + np.einsum("jk,pkn->pjn", self._stroke_jacobian, poses)
+        beyond = np.maximum(self._stroke_min_m[:, None] - sliders, sliders - self._stroke_max_m[:, None])
+        return np.max(beyond, axis=(-2, -1))
+
+    def exact_limit_check(self, params: WashoutParameters) -> tuple[bool, bool]:
+        """Full twin IK over the whole run: (within stroke and rod reach, within every IK limit)."""
+        signals, _ = self.run(self.variables_of(params)[None, :])
+        solutions = twin_inverse_kinematics(self.twin, signals.pose[0].T, check=False)
+        return within_stroke(solutions), all(bool(np.all(solution.reachable)) for solution in solutions.values())
+
+    def _tilt_rate_excess(self, signals: WashoutSignals) -> np.ndarray:
+        rate = backward_rate(signals.tilt_command, self.sample_period_s)
+        return np.max(np.abs(rate), axis=(-2, -1)) - self.baseline.tilt_rate_limit_rad_s
+
+
+def within_stroke(solutions: dict[str, IKSolution]) -> bool:
+    """No slider leaves its stroke and every rod reaches its rail (cones and conditioning not included)."""
+    flags = LegViolation.STROKE | LegViolation.ROD_CANNOT_REACH
+    return all(not np.any(solution.violations & flags) for solution in solutions.values())
+
+
+def _linearised_twin_ik(twin: TwinRobot, step: float = 1e-5) -> tuple[np.ndarray, np.ndarray]:
+    """Twin slider positions (12,) at neutral and d(sliders)/d(stance pose) (12, 6) by central differences."""
+
+    def sliders(poses: np.ndarray) -> np.ndarray:
+        solutions = twin_inverse_kinematics(twin, poses)
+        return np.concatenate([solutions[side].slider_positions_m for side in twin.sides], axis=1)
+
+    offsets = np.concatenate([np.eye(6), -np.eye(6)]) * step
+    moved = sliders(offsets)
+    return sliders(np.zeros((1, 6)))[0], ((moved[:6] - moved[6:]) / (2.0 * step)).T
+
+
+def knee_index(objectives: np.ndarray) -> int:
+    """Index of the knee of a two-objective front: farthest from the line through its extremes."""
+    objectives = np.asarray(objectives, dtype=float)
+    if len(objectives) <= 2:
+        return int(np.argmin(objectives.sum(axis=1)))
+    span = np.ptp(objectives, axis=0)
+    normal = (objectives - objectives.min(axis=0)) / np.where(span > 0, span, 1.0)
+    first, second = normal[np.argmin(normal[:, 0])], normal[np.argmin(normal[:, 1])]
+    direction = second - first
+    length = np.hypot(*direction)
+    if length == 0.0:
+        return int(np.argmin(normal.sum(axis=1)))
+    distance = np.abs(direction[0] * (normal[:, 1] - first[1]) - direction[1] * (normal[:, 0] - first[0])) / length
+    return int(np.argmax(distance))
+
+
+@dataclass(frozen=True)
+class TuningResult:
+    baseline: WashoutParameters
+    baseline_objectives: dict[str, float]
+    optimized: WashoutParameters
+    optimized_objectives: dict[str, float]
+    improves_on_baseline: bool  # the compromise is better than the baseline in both objectives
+    optimized_within_stroke: bool  # full twin IK of the compromise: in stroke, every rod reaches its rail
+    optimized_reachable: bool  # ... and within every other IK limit too (joint cones, conditioning)
+    pareto_parameters: list[WashoutParameters]
+    pareto_objectives: np.ndarray  # (M, 2)
+    wall_s: float
+    seed: int
+    generations: int
+    population: int
+
+    def to_dict(self) -> dict[str, Any]:
+        def summary(objectives: dict[str, float], params: WashoutParameters) -> dict[str, Any]:
+            return {**objectives, "params": params.to_dict()}
+
+        return {
+            "baseline": summary(self.baseline_objectives, self.baseline),
+            "optimized": summary(self.optimized_objectives, self.optimized),
+            "improves_on_baseline": self.improves_on_baseline,
+            "optimized_within_stroke": self.optimized_within_stroke,
+            "optimized_reachable": self.optimized_reachable,
+            "pareto_size": len(self.pareto_parameters),
+            "pareto_front": self.pareto_objectives.tolist(),
+            "wall_s": self.wall_s,
+            "seed": self.seed,
+            "generations": self.generations,
+            "population": self.population,
+        }
+
+
+class _Progress(Callback):
+    def __init__(self, advance: Callable[[int], None]) -> None:
+        super().__init__()
+        self._advance = advance
+
+    def notify(self, algorithm: Any) -> None:
+        self._advance(1)
+
+
+def tune(
+    *,
+    seed: int = 1,
+    generations: int = 100,
+    population: int = 100,
+    problem: WashoutTuningProblem | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> TuningResult:
+    """Run NSGA-II on `problem` (default: the paper's) and pick the knee of the feasible front."""
+    for name, value in (("generations", generations), ("population", population)):
+        if not isinstance(value, int) or value < 1:
+            raise ParameterError(name, value, "must be an integer >= 1")
+    problem = problem or WashoutTuningProblem()
+    started = time.perf_counter()
+    result = minimize(
+        problem,
+        NSGA2(pop_size=population, eliminate_duplicates=True),
+        ("n_gen", generations),
+        seed=seed,
+        callback=_Progress(progress or (lambda _steps: None)),
+        verbose=False,
+    )
+    wall_s = time.perf_counter() - started
+    front_x = np.atleast_2d(result.opt.get("X"))
+    front_f = np.atleast_2d(result.opt.get("F"))
+    feasible = np.all(np.atleast_2d(result.opt.get("G")) <= 0.0, axis=1)
+    if not np.any(feasible):
+        raise RuntimeError("NSGA-II found no feasible washout parameters (stroke or tilt-rate constraint)")
+    front_x, front_f = front_x[feasible], front_f[feasible]
+    order = np.argsort(front_f[:, 0])
+    front_x, front_f = front_x[order], front_f[order]
+
+    baseline_f, _ = problem.objectives_and_constraints(problem.variables_of(problem.baseline)[None, :])
+    better = np.all(front_f < baseline_f[0], axis=1)
+    candidates = np.flatnonzero(better) if np.any(better) else np.arange(len(front_f))
+    chosen = int(candidates[knee_index(front_f[candidates])])
+    optimized = problem.parameters(front_x[chosen])[0]
+    in_stroke, reachable = problem.exact_limit_check(optimized)
+    return TuningResult(
+        baseline=problem.baseline,
+        baseline_objectives=dict(zip(OBJECTIVE_NAMES, map(float, baseline_f[0]), strict=True)),
+        optimized=optimized,
+        optimized_objectives=dict(zip(OBJECTIVE_NAMES, map(float, front_f[chosen]), strict=True)),
+        improves_on_baseline=bool(better[chosen]),
+        optimized_within_stroke=in_stroke,
+        optimized_reachable=reachable,
+        pareto_parameters=problem.parameters(front_x),
+        pareto_objectives=front_f,
+        wall_s=wall_s,
+        seed=seed,
+        generations=generations,
+        population=population,
+    )

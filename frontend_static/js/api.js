@@ -1,0 +1,74 @@
+// The REST API under /api/v1 (issue 6). Authentication is the HttpOnly session cookie set at login,
+// so no token is ever kept in script-readable storage.
+export const API = "/api/v1";
+
+export class ApiError extends Error {
+  constructor(status, detail) {
+    super(describeDetail(detail) || `HTTP ${status}`);
+    this.status = status;
+    this.detail = detail;
+    this.fieldErrors = fieldErrors(detail);
+  }
+}
+
+// FastAPI 422 bodies: {detail: [{loc: ["body", "segments", 0, "cue", ...], msg}]} -> {"segments[0].cue": msg}
+export function fieldErrors(detail) {
+  const errors = {};
+  if (!Array.isArray(detail)) return errors;
+  for (const item of detail) {
+    const loc = (item.loc || []).filter((part) => part !== "body" && part !== "query" && part !== "path");
+    let name = "";
+    for (const part of loc) name += typeof part === "number" ? `[${part}]` : (name ? "." : "") + part;
+    errors[name || "_"] = item.msg;
+  }
+  return errors;
+}
+
+function describeDetail(detail) {
+  if (typeof detail === "string") return detail;
+  if (Array.isArray(detail)) {
+    return detail.map((d) => {
+      const loc = (d.loc || []).filter((p) => p !== "body").join(".");
+      return loc ? `${loc}: ${d.msg}` : d.msg;
+    }).join("; ");
+  }
+  return detail ? JSON.stringify(detail) : "";
+}
+
+export async function request(method, path, body, { raw = false } = {}) {
+  const options = { method, credentials: "same-origin", headers: {} };
+  if (body !== undefined) {
+    options.headers["Content-Type"] = "application/json";
+    options.body = JSON.stringify(body);
+  }
+  let response;
+  try {
+    response = await fetch(API + path, options);
+  } catch (error) {
+    throw new ApiError(0, "the console service does not answer (network error)");
+  }
+  if (!response.ok) {
+    let detail = response.statusText;
+    try { detail = (await response.json()).detail; } catch (_) { /* not JSON */ }
+    const error = new ApiError(response.status, detail);
+    if (response.status === 401) window.dispatchEvent(new CustomEvent("ssp:unauthorised"));
+    throw error;
+  }
+  if (raw) return response;
+  if (response.status === 204) return null;
+  return response.json();
+}
+
+export const get = (path) => request("GET", path);
+export const post = (path, body) => request("POST", path, body);
+export const patch = (path, body) => request("PATCH", path, body);
+export const put = (path, body) => request("PUT", path, body);
+
+export function query(params) {
+  const search = new URLSearchParams();
+  for (const [key, value] of Object.entries(params)) {
+    if (value !== undefined && value !== null && value !== "") search.set(key, value);
+  }
+  const text = search.toString();
+  return text ? `?${text}` : "";
+}

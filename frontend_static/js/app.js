@@ -1,0 +1,116 @@
+// Entry point: hash routing, the login state, the always-present emergency stop and the robot status.
+import { get, post } from "./api.js";
+import { sessionPage } from "./console.js";
+import { historyPage, loginPage, newPatientPage, patientPage, patientsPage, prescriptionPage, schedulePage } from "./pages.js";
+import { banner, clear, clearBanner, errorText, h } from "./ui.js";
+
+// The software emergency stop: ONE request, no confirmation, from every page; the key is Escape,
+// caught before anything else (also while typing in a field or with a dialog open).
+export const ESTOP_KEY = "Escape";
+const estopButton = document.getElementById("estop");
+
+async function emergencyStop() {
+  estopButton.classList.add("sent");
+  try {
+    const response = await fetch("/api/v1/estop", { method: "POST", credentials: "same-origin" });
+    if (response.ok) {
+      banner("error", `EMERGENCY STOP sent at ${new Date().toLocaleTimeString()}. The robot is stopped; reset it from the session console once safe.`, { key: "estop", sticky: true });
+    } else if (response.status === 401) {
+      banner("error", "Not logged in: the software emergency stop needs a login. Use the robot's red hardware stop button.", { key: "estop", sticky: true });
+    } else {
+      const detail = await response.json().catch(() => ({ detail: response.statusText }));
+      banner("error", `Emergency stop not delivered (HTTP ${response.status}: ${detail.detail}). Use the robot's red hardware stop button.`, { key: "estop", sticky: true });
+    }
+  } catch (error) {
+    banner("error", "Emergency stop not delivered: the console service does not answer. Use the robot's red hardware stop button.", { key: "estop", sticky: true });
+  }
+  window.dispatchEvent(new CustomEvent("ssp:estop"));
+  setTimeout(() => estopButton.classList.remove("sent"), 1500);
+}
+estopButton.addEventListener("click", emergencyStop);
+window.addEventListener("keydown", (event) => {
+  if (event.key === ESTOP_KEY && !event.repeat) { event.preventDefault(); emergencyStop(); }
+}, { capture: true });
+
+// --- login state -----------------------------------------------------------------------------------
+let user = null;
+const main = document.getElementById("main");
+const nav = document.getElementById("nav");
+const logout = document.getElementById("logout");
+const userName = document.getElementById("user-name");
+
+function setUser(next) {
+  user = next;
+  nav.hidden = !user;
+  logout.hidden = !user;
+  userName.textContent = user ? `${user.full_name || user.username} (${user.role})` : "";
+}
+logout.addEventListener("click", async () => {
+  await post("/auth/logout").catch(() => null);
+  setUser(null);
+  location.hash = "#/login";
+});
+window.addEventListener("ssp:unauthorised", () => {
+  if (user) { setUser(null); banner("warning", "Your login session ended: please log in again."); }
+  if (location.hash !== "#/login") location.hash = "#/login";
+});
+
+// --- robot status in the top bar: offline, fault and latched emergency stop are always visible ------
+const robotStatus = document.getElementById("robot-status");
+async function pollRobot() {
+  if (!user) { robotStatus.textContent = ""; robotStatus.className = "robot-status"; return; }
+  try {
+    const state = await get("/robot/state");
+    const bad = state.state === "fault" || state.estop_latched;
+    robotStatus.className = `robot-status ${bad ? "bad" : state.state === "running" ? "warn" : "ok"}`;
+    robotStatus.textContent = `Robot: ${state.estop_latched ? "E-STOP LATCHED" : state.state.toUpperCase()}`;
+    clearBanner("robot");
+    if (state.state === "fault") banner("error", `Worker fault (${state.stop_reason.replace(/_/g, " ")}): motion is stopped. Check the robot, then Reset in the session console.`, { key: "fault", sticky: true });
+    else clearBanner("fault");
+  } catch (error) {
+    robotStatus.className = "robot-status bad";
+    robotStatus.textContent = error.status === 503 ? "Robot: OFFLINE" : "Robot: unknown";
+    if (error.status === 503) banner("error", errorText(error), { key: "robot", sticky: true });
+  }
+}
+setInterval(pollRobot, 2000);
+
+// --- routing ---------------------------------------------------------------------------------------
+const ROUTES = [
+  [/^#\/login$/, () => loginPage(main, { onLogin: (u) => { setUser(u); pollRobot(); location.hash = "#/patients"; } })],
+  [/^#\/patients$/, () => patientsPage(main)],
+  [/^#\/patients\/new$/, () => newPatientPage(main)],
+  [/^#\/patients\/(\d+)$/, (m) => patientPage(main, Number(m[1]))],
+  [/^#\/prescriptions\/new$/, (m, params) => prescriptionPage(main, null, params)],
+  [/^#\/prescriptions\/(\d+)$/, (m, params) => prescriptionPage(main, Number(m[1]), params)],
+  [/^#\/schedule$/, (m, params) => schedulePage(main, params)],
+  [/^#\/session\/(\d+)$/, (m, params, cleanup) => sessionPage(main, Number(m[1]), cleanup)],
+  [/^#\/history$/, (m, params) => historyPage(main, params)],
+];
+let cleanup = [];
+
+async function route() {
+  cleanup.forEach((fn) => fn());
+  cleanup = [];
+  const [path, search] = (location.hash || "#/patients").split("?");
+  const params = new URLSearchParams(search || "");
+  if (!user && path !== "#/login") {
+    try { setUser(await get("/auth/me")); } catch (_) { location.hash = "#/login"; return; }
+  }
+  clear(main);
+  document.querySelectorAll("nav a").forEach((a) => a.classList.toggle("active", path.startsWith(a.getAttribute("href"))));
+  for (const [pattern, render] of ROUTES) {
+    const match = path.match(pattern);
+    if (!match) continue;
+    try {
+      await render(match, params, cleanup);
+    } catch (error) {
+      if (error.status !== 401) main.append(h("div.banner.error", { role: "alert" }, errorText(error)));
+    }
+    main.focus({ preventScroll: true });
+    return;
+  }
+  main.append(h("p", {}, "Page not found. ", h("a", { href: "#/patients" }, "Go to patients")));
+}
+window.addEventListener("hashchange", route);
+route().then(pollRobot);

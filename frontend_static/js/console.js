@@ -1,0 +1,259 @@
+// The live session console: run control with a confirmation before motion, the embedded 3D view,
+// live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
+import { get, post } from "./api.js";
+import { LiveChart } from "./charts.js";
+import { metric } from "./pages.js";
+import { M_TO_MM, badge, banner, clear, confirmDialog, fmt, fmtDateTime, h, showError, table } from "./ui.js";
+
+const GRAVITY_M_S2 = 9.80665;
+const EXPORT_FORMATS = [["csv", "CSV (zip)"], ["parquet", "Parquet"], ["json", "JSON"], ["c3d", "C3D"]];
+const SLIDER_LABELS = Array.from({ length: 12 }, (_, i) => `${i < 6 ? "R" : "L"}${(i % 6) + 1}`);
+
+// Specific force the platform delivers at the feet, stance frame: Rᵀ(a + g e_z) − g e_z, R = Rx·Ry·Rz
+// (core.fidelity.platform_specific_force), with a from the stance positions of successive frames.
+function platformSpecificForce(angles, acceleration) {
+  const [a, b, c] = angles;
+  const ca = Math.cos(a), sa = Math.sin(a), cb = Math.cos(b), sb = Math.sin(b), cc = Math.cos(c), sc = Math.sin(c);
+  const R = [[cb * cc, -cb * sc, sb], [ca * sc + sa * sb * cc, ca * cc - sa * sb * sc, -sa * cb], [sa * sc - ca * sb * cc, sa * cc + ca * sb * sc, ca * cb]];
+  const v = [acceleration[0], acceleration[1], acceleration[2] + GRAVITY_M_S2];
+  return [0, 1, 2].map((k) => R[0][k] * v[0] + R[1][k] * v[1] + R[2][k] * v[2] - (k === 2 ? GRAVITY_M_S2 : 0));
+}
+
+class AccelerationEstimate {
+  // Second differences of 30 Hz frames are noisy; a short exponential average keeps the trend readable.
+  constructor() { this.history = []; this.smoothed = [0, 0, 0]; }
+  update(t, position) {
+    this.history.push([t, position]);
+    if (this.history.length > 3) this.history.shift();
+    if (this.history.length < 3) return this.smoothed;
+    const [[t0, p0], [t1, p1], [t2, p2]] = this.history;
+    const dt1 = t1 - t0, dt2 = t2 - t1;
+    if (dt1 <= 0 || dt2 <= 0) return this.smoothed;
+    const raw = [0, 1, 2].map((k) => ((p2[k] - p1[k]) / dt2 - (p1[k] - p0[k]) / dt1) / ((dt1 + dt2) / 2));
+    this.smoothed = this.smoothed.map((s, k) => 0.7 * s + 0.3 * raw[k]);
+    return this.smoothed;
+  }
+}
+
+export async function sessionPage(main, sessionId, cleanup) {
+  const booking = await get(`/sessions/${sessionId}`);
+  const [patient, prescription] = await Promise.all([
+    get(`/patients/${booking.patient_id}`),
+    get(`/prescriptions/${booking.prescription_id}/versions/${booking.prescription_version}`),
+  ]);
+  const prescriptionInfo = await get(`/prescriptions/${booking.prescription_id}`);
+  const runState = h("span#run-state.badge.big-state", {}, "—");
+  const supervisorState = h("span#supervisor-state", {}, "—");
+  const controls = {
+    start: h("button.go#start-button", { type: "button" }, "Start"),
+    pause: h("button.secondary#pause-button", { type: "button" }, "Pause"),
+    resume: h("button.secondary#resume-button", { type: "button" }, "Resume"),
+    stop: h("button.danger#stop-button", { type: "button" }, "Stop"),
+    reset: h("button.secondary#reset-button", { type: "button", title: "Clears a latched emergency stop or fault; never starts motion" }, "Reset robot"),
+  };
+  const health = h("div.metrics#health");
+  const vizHost = h("div#viz-host");
+  const vizStatus = h("p.muted#viz-status", { role: "status" }, "3D view: connecting…");
+  const chartsHost = h("div.charts#live-charts");
+  const runsHost = h("div#runs");
+  const totalS = prescription.content.segments.reduce((s, x) => s + x.duration_s, 0);
+
+  main.append(
+    h("h1", {}, `Session console: ${patient.name}`),
+    h("div.panel", {},
+      h("div.row", {},
+        h("div.grow", {},
+          h("div", {}, h("strong", {}, "Prescription: "), `${prescriptionInfo.name}, version ${booking.prescription_version} (${prescription.content.segments.length} segment(s), ${fmt(totalS, "s", 0)})`),
+          h("div", {}, h("strong", {}, "Booked: "), `${fmtDateTime(booking.start)} on ${booking.robot} · `, badge(booking.status)),
+          h("div", {}, h("strong", {}, "Robot: "), supervisorState)),
+        h("div", {}, h("div.muted", {}, "Run"), runState)),
+      h("div.row.run-controls", { role: "group", "aria-label": "Run control" }, controls.start, controls.pause, controls.resume, controls.stop, controls.reset)),
+    h("div.console-grid", {},
+      h("section", { "aria-label": "3D view" }, h("h2", {}, "3D view"), vizHost, vizStatus),
+      h("section", { "aria-label": "Worker health" }, h("h2", {}, "Robot and worker health"), health)),
+    h("h2", {}, "Live signals"),
+    chartsHost,
+    h("h2", {}, "Runs, events and exports"),
+    runsHost);
+
+  // --- live charts -----------------------------------------------------------------------------
+  const charts = {
+    acceleration: new LiveChart(chartsHost, "Specific force: commanded cue (dashed) vs delivered by the platform", "m/s²", [
+      { label: "cue x", color: "#0b4fa8", dash: [8, 5] }, { label: "platform x", color: "#0b4fa8" },
+      { label: "cue y", color: "#d1495b", dash: [8, 5] }, { label: "platform y", color: "#d1495b" }]),
+    sliders: new LiveChart(chartsHost, "Slider positions", "mm", SLIDER_LABELS.map((label, i) => ({ label, dash: i < 6 ? undefined : [6, 4], width: 1.5, digits: 0 }))),
+    forces: new LiveChart(chartsHost, "Drive forces", "N", SLIDER_LABELS.map((label, i) => ({ label, dash: i < 6 ? undefined : [6, 4], width: 1.5, digits: 0 }))),
+    cop: new LiveChart(chartsHost, "Centre of pressure, each foot", "mm", [
+      { label: "right AP (x)", color: "#e06c00" }, { label: "right ML (y)", color: "#e06c00", dash: [6, 4] },
+      { label: "left AP (x)", color: "#00798c" }, { label: "left ML (y)", color: "#00798c", dash: [6, 4] }]),
+    loads: new LiveChart(chartsHost, "Harness load and foot-plate vertical forces", "N", [
+      { label: "harness", color: "#b00020", width: 3, digits: 0 }, { label: "right plate Fz", color: "#e06c00", digits: 0 }, { label: "left plate Fz", color: "#00798c", digits: 0 }]),
+  };
+  const acceleration = new AccelerationEstimate();
+  let framesThisSecond = 0;
+  let frameRate = 0;
+  let lastState = null;
+  const rateTimer = setInterval(() => { frameRate = framesThisSecond; framesThisSecond = 0; renderHealth(); }, 1000);
+
+  function renderHealth() {
+    const s = lastState;
+    clear(health);
+    if (!s) { health.append(metric("Telemetry", "waiting…")); return; }
+    health.append(
+      metric("Supervisor", s.state.toUpperCase(), ["estop", "fault"].includes(s.state)),
+      metric("Drives (HAL)", String(s.hal_state)),
+      metric("Tick compute time", fmt(s.tick_compute_us, "µs", 0), s.tick_compute_us > 800),
+      metric("Tick lateness", fmt(s.lateness_us, "µs", 0)),
+      metric("Deadline misses", `${s.deadline_misses} ticks`, s.late_streak > 0),
+      metric("Limit hits", `${s.limit_hits}`, s.limit_hits > 0),
+      metric("Tracking error", fmt(s.tracking_error_m * M_TO_MM, "mm", 2)),
+      metric("Harness load", fmt(s.harness_load_n, "N", 0)),
+      metric("Emergency stop", s.estop_latched ? "LATCHED" : "clear", s.estop_latched),
+      metric("Last stop reason", s.stop_reason.replace(/_/g, " ")),
+      metric("Telemetry rate", `${frameRate} frames/s`, frameRate < 10),
+      metric("Worker time", fmt(s.time_s, "s", 1)));
+  }
+
+  function onFrame(frame) {
+    if (frame.type === "error") { banner("error", `Robot offline: ${frame.detail}`, { key: "robot" }); return; }
+    const s = frame.state;
+    if (!s) return;
+    lastState = s;
+    framesThisSecond += 1;
+    chartsHost.dataset.samples = String(Number(chartsHost.dataset.samples || 0) + 1);
+    clear(supervisorState).append(badge(s.state), ` drives ${s.hal_state}`);
+    const t = s.time_s;
+    const pose = s.stance_pose;
+    const delivered = platformSpecificForce(pose.slice(3), acceleration.update(t, pose.slice(0, 3)));
+    const cue = s.cue_specific_force_m_s2;
+    charts.acceleration.push(t, [cue[0], delivered[0], cue[1], delivered[1]]);
+    charts.sliders.push(t, s.slider_position_m.map((v) => v * M_TO_MM));
+    charts.forces.push(t, s.drive_force_n);
+    charts.cop.push(t, [s.plate_cop_m[0][0], s.plate_cop_m[0][1], s.plate_cop_m[1][0], s.plate_cop_m[1][1]].map((v) => v * M_TO_MM));
+    charts.loads.push(t, [s.harness_load_n, s.plate_force_z_n[0], s.plate_force_z_n[1]]);
+    for (const event of frame.events || []) {
+      if (event.kind === "fall") {
+        banner("fall", `FALL DETECTED at t = ${fmt(event.tick_time_s, "s", 2)} (${event.detector || "detector"}): the robot stops. Attend to the patient.`, { key: "fall", sticky: true });
+      }
+    }
+    if (frame.events && frame.events.length) refreshRuns();
+    if (s.state === "fault") banner("error", `Worker fault: ${s.stop_reason.replace(/_/g, " ")}. Check the robot, then Reset.`, { key: "fault", sticky: true });
+    if (!lastRender || performance.now() - lastRender > 1000) { lastRender = performance.now(); renderHealth(); }
+  }
+  let lastRender = 0;
+
+  // --- telemetry WebSocket (reconnects while the page is open) ---------------------------------
+  let socket = null;
+  let closed = false;
+  function connect() {
+    const scheme = location.protocol === "https:" ? "wss" : "ws";
+    socket = new WebSocket(`${scheme}://${location.host}/api/v1/sessions/${sessionId}/telemetry`);
+    socket.onmessage = (message) => onFrame(JSON.parse(message.data));
+    socket.onclose = (event) => {
+      if (closed) return;
+      if (event.code === 1013) banner("error", "Robot offline: no real-time worker is running (records, schedules and exports still work).", { key: "robot", sticky: true });
+      setTimeout(connect, 3000);
+    };
+  }
+  connect();
+
+  // --- the 3D view -------------------------------------------------------------------------------
+  const viz = await get("/viz").catch(() => ({ available: false, detail: "the 3D view status is unavailable" }));
+  if (viz.available) {
+    vizHost.append(h("iframe.viz-frame#viz-frame", { src: `${location.protocol}//${location.hostname}:${viz.port}/`, title: "Live 3D view of the twin robot and the patient", loading: "eager" }));
+  } else {
+    vizHost.append(h("p.panel", {}, `3D view unavailable: ${viz.detail}`));
+  }
+  const vizTimer = setInterval(async () => {
+    try {
+      const st = await get("/viz");
+      if (!st.available) return;
+      vizStatus.textContent = st.mode === "replay"
+        ? `3D view: replay of run ${st.replay_run_id}, ${fmt(st.replay_position_s, "s", 1)} of ${fmt(st.replay_duration_s, "s", 1)}${st.replay_finished ? " (finished)" : ""} · ${st.frames_shown} frames shown`
+        : `3D view: live at ${st.rate_hz} Hz · ${st.frames_shown} frames shown`;
+      vizStatus.dataset.frames = st.frames_shown;
+      vizStatus.dataset.mode = st.mode;
+    } catch (_) { /* the banner logic elsewhere reports API trouble */ }
+  }, 1000);
+
+  // --- runs, events, exports -------------------------------------------------------------------
+  let activeRun = null;
+  async function refreshRuns() {
+    const runs = await get(`/sessions/${sessionId}/runs`);
+    activeRun = runs.find((r) => r.state === "running" || r.state === "paused") || null;
+    const last = runs[runs.length - 1];
+    const shown = last ? (last.state === "ended" ? (last.outcome || "ended") : last.state) : "not started";
+    runState.className = `badge big-state ${shown}`;
+    runState.textContent = shown.replace(/_/g, " ");
+    runState.dataset.state = shown;
+    controls.start.disabled = Boolean(activeRun);
+    controls.pause.disabled = !activeRun || activeRun.state !== "running";
+    controls.resume.disabled = !activeRun || activeRun.state !== "paused";
+    controls.stop.disabled = !activeRun;
+    const blocks = await Promise.all(runs.slice().reverse().map(async (run) => {
+      const events = await get(`/runs/${run.id}/events`);
+      const format = h("select", { "aria-label": `Export format for run ${run.id}` }, EXPORT_FORMATS.map(([v, t]) => h("option", { value: v }, t)));
+      const link = h("a.button.primary", { href: `/api/v1/sessions/${sessionId}/export?format=csv&run_id=${run.id}`, download: "", dataset: { run: run.id } }, `Export run ${run.id} log`);
+      format.addEventListener("change", () => { link.href = `/api/v1/sessions/${sessionId}/export?format=${format.value}&run_id=${run.id}`; });
+      return h("div.panel", { dataset: { runId: run.id } },
+        h("div.row", {}, h("h3.grow", {}, `Run ${run.id} · started ${fmtDateTime(run.started_at)}`), badge(run.state === "ended" ? run.outcome || "ended" : run.state)),
+        h("p", {}, `${run.sample_count} samples recorded${run.ended_at ? `, ended ${fmtDateTime(run.ended_at)}` : ""}.`),
+        events.length ? table(["Event", "Tick time", "UTC", "Detector", "Details"], events.map((e) => h("tr", { dataset: { kind: e.kind } },
+          h("td", {}, h("span.event-kind", {}, e.kind.replace(/_/g, " "))), h("td.num", {}, fmt(e.tick_time_s, "s", 3)),
+          h("td", {}, new Date(e.utc).toISOString().replace("T", " ").slice(0, 23)), h("td", {}, e.detector || "—"),
+          h("td", {}, Object.keys(e.details || {}).length ? JSON.stringify(e.details) : "—")))) : h("p.muted", {}, "No events."),
+        h("div.row", {}, h("label", {}, "Format ", format), link,
+          run.state === "ended" ? h("button.secondary", { type: "button", onclick: () => replay(run.id) }, `Replay run ${run.id} in 3D`) : null));
+    }));
+    clear(runsHost).append(...(blocks.length ? blocks : [h("p.muted", {}, "No run yet.")]),
+      h("button.secondary", { type: "button", onclick: () => post("/viz/live").catch(showError) }, "3D view: back to live"));
+  }
+  async function replay(runId) {
+    try { await post("/viz/replay", { run_id: runId }); banner("info", `Replaying run ${runId} in the 3D view.`); } catch (error) { showError(error); }
+  }
+
+  // --- run control -------------------------------------------------------------------------------
+  async function command(name) {
+    try {
+      await post(`/sessions/${sessionId}/${name}`);
+    } catch (error) {
+      showError(error, "command");
+    }
+    await refreshRuns();
+  }
+  controls.start.addEventListener("click", async () => {
+    const ok = await confirmDialog({
+      title: "Start motion?",
+      body: `The platforms will move under ${patient.name}: ${prescriptionInfo.name}, ${fmt(totalS, "s", 0)}. The emergency stop is the red button (key Esc).`,
+      ok: "Start motion",
+      checklist: ["The patient is in the harness and the harness is attached.", "Both feet are on the foot plates.", "Nobody else is inside the robot's working area."],
+    });
+    if (!ok) return;
+    await post("/viz/live").catch(() => null);
+    await command("start");
+  });
+  controls.pause.addEventListener("click", () => command("pause"));
+  controls.resume.addEventListener("click", async () => {
+    const ok = await confirmDialog({ title: "Resume motion?", body: "The platforms will move again.", ok: "Resume motion" });
+    if (ok) await command("resume");
+  });
+  controls.stop.addEventListener("click", () => command("stop"));
+  controls.reset.addEventListener("click", async () => {
+    try { await post("/robot/reset"); banner("info", "Reset sent: the robot is ready once it shows idle."); } catch (error) { showError(error); }
+  });
+  const onEstop = () => { setTimeout(refreshRuns, 600); setTimeout(refreshRuns, 2500); };
+  window.addEventListener("ssp:estop", onEstop);
+
+  renderHealth();
+  await refreshRuns();
+  const runsTimer = setInterval(() => refreshRuns().catch(() => null), 3000);
+  const onResize = () => Object.values(charts).forEach((c) => c.resize());
+  window.addEventListener("resize", onResize);
+  cleanup.push(() => {
+    closed = true;
+    if (socket) socket.close();
+    clearInterval(rateTimer); clearInterval(vizTimer); clearInterval(runsTimer);
+    window.removeEventListener("ssp:estop", onEstop);
+    window.removeEventListener("resize", onResize);
+  });
+}

@@ -1,0 +1,132 @@
+// DOM helpers, banners, the confirmation dialog and unit formatting shared by every page.
+
+// h("tag.class#id", {attrs}, ...children): a small element builder (text children are escaped by the DOM).
+export function h(spec, attrs = {}, ...children) {
+  const [tagAndClasses, id] = spec.split("#");
+  const [tag, ...classes] = tagAndClasses.split(".");
+  const el = document.createElement(tag || "div");
+  if (classes.length) el.className = classes.join(" ");
+  if (id) el.id = id;
+  for (const [key, value] of Object.entries(attrs || {})) {
+    if (value === undefined || value === null || value === false) continue;
+    if (key.startsWith("on")) el.addEventListener(key.slice(2), value);
+    else if (key === "dataset") Object.assign(el.dataset, value);
+    else if (key === "text") el.textContent = value;
+    else if (value === true) el.setAttribute(key, "");
+    else el.setAttribute(key, value);
+  }
+  for (const child of children.flat()) {
+    if (child === undefined || child === null || child === false) continue;
+    el.append(child instanceof Node ? child : document.createTextNode(String(child)));
+  }
+  return el;
+}
+
+export function clear(el) { while (el.firstChild) el.removeChild(el.firstChild); return el; }
+
+// --- numbers with units (SI inside, mm and degrees at this edge) ---
+export const M_TO_MM = 1000;
+export const RAD_TO_DEG = 180 / Math.PI;
+export function fmt(value, unit, digits = 1) {
+  if (value === null || value === undefined || !Number.isFinite(Number(value))) return `— ${unit}`;
+  return `${Number(value).toFixed(digits)} ${unit}`;
+}
+export function fmtDateTime(iso) {
+  if (!iso) return "—";
+  const d = new Date(iso);
+  return d.toLocaleString(undefined, { weekday: "short", year: "numeric", month: "short", day: "numeric", hour: "2-digit", minute: "2-digit" });
+}
+export function fmtTime(iso) {
+  return new Date(iso).toLocaleTimeString(undefined, { hour: "2-digit", minute: "2-digit" });
+}
+export function badge(state) { return h(`span.badge.${String(state).replace(/[^a-z_]/gi, "")}`, {}, String(state).replace(/_/g, " ")); }
+
+// --- banners ---
+const bannerHost = () => document.getElementById("banners");
+export function banner(kind, message, { key, sticky = false } = {}) {
+  const host = bannerHost();
+  if (key) host.querySelectorAll(`[data-key="${key}"]`).forEach((el) => el.remove());
+  const el = h(`div.banner.${kind}`, { role: kind === "error" || kind === "fall" ? "alert" : "status", dataset: key ? { key } : {} },
+    h("span", {}, message),
+    h("button", { type: "button", onclick: () => el.remove(), "aria-label": "Dismiss message" }, "Dismiss"));
+  host.append(el);
+  if (!sticky && kind !== "error" && kind !== "fall") setTimeout(() => el.remove(), 8000);
+  return el;
+}
+export function clearBanner(key) { bannerHost().querySelectorAll(`[data-key="${key}"]`).forEach((el) => el.remove()); }
+export function showError(error, key) { return banner("error", errorText(error), { key }); }
+export function errorText(error) {
+  if (error && error.status === 503) return `Robot offline: ${error.message}`;
+  if (error && error.status === 409) return `Not possible now: ${error.message}`;
+  if (error && error.status === 422) return `Please check the highlighted fields: ${error.message}`;
+  return `Error: ${error && error.message ? error.message : error}`;
+}
+
+// Shows API field errors (422) next to the inputs whose data-field matches the error's field path.
+export function showFieldErrors(form, errors) {
+  form.querySelectorAll(".field-error").forEach((el) => el.remove());
+  form.querySelectorAll(".invalid").forEach((el) => el.classList.remove("invalid"));
+  let first = null;
+  const unplaced = [];
+  for (const [name, message] of Object.entries(errors)) {
+    const input = findField(form, name);
+    if (!input) { unplaced.push(`${name}: ${message}`); continue; }
+    input.classList.add("invalid");
+    input.setAttribute("aria-invalid", "true");
+    const note = h("div.field-error", { role: "alert" }, message);
+    (input.closest(".field") || input.parentElement).append(note);
+    first = first || input;
+  }
+  if (first) first.focus();
+  return unplaced;
+}
+function findField(form, name) {
+  // The most specific match: "segments[0].cue.amplitude_m_s2", else a parent path such as "segments[0].cue".
+  let path = name;
+  while (path) {
+    const input = form.querySelector(`[data-field="${CSS.escape(path)}"]`);
+    if (input) return input;
+    const cut = Math.max(path.lastIndexOf("."), path.lastIndexOf("["));
+    path = cut > 0 ? path.slice(0, cut) : "";
+  }
+  return null;
+}
+
+// --- confirmation dialog: resolves true only on the explicit OK button ---
+export function confirmDialog({ title, body, ok, checklist = [] }) {
+  const dialog = document.getElementById("confirm-dialog");
+  document.getElementById("confirm-title").textContent = title;
+  const okButton = document.getElementById("confirm-ok");
+  okButton.textContent = ok;
+  const bodyHost = clear(document.getElementById("confirm-body"));
+  bodyHost.append(h("p", {}, body));
+  const boxes = checklist.map((text, i) => h("input", { type: "checkbox", id: `confirm-check-${i}` }));
+  if (checklist.length) {
+    bodyHost.append(h("div.checklist", {}, checklist.map((text, i) => h("label", { for: `confirm-check-${i}` }, boxes[i], text))));
+  }
+  const sync = () => { okButton.disabled = !boxes.every((b) => b.checked); };
+  boxes.forEach((b) => b.addEventListener("change", sync));
+  sync();
+  return new Promise((resolve) => {
+    dialog.returnValue = "";
+    dialog.addEventListener("close", () => resolve(dialog.returnValue === "ok"), { once: true });
+    dialog.showModal();
+    (boxes[0] || okButton).focus();
+  });
+}
+
+export function field(labelText, input, { unit, hint, id } = {}) {
+  const inputId = id || input.id || `f-${Math.random().toString(36).slice(2, 9)}`;
+  input.id = inputId;
+  return h("div.field", {},
+    h("label", { for: inputId }, labelText),
+    unit ? h("div.unit-input", {}, input, h("span.unit", {}, unit)) : input,
+    hint ? h("div.hint", {}, hint) : null);
+}
+
+export function table(headers, rows, { caption } = {}) {
+  return h("table", {},
+    caption ? h("caption.muted", {}, caption) : null,
+    h("thead", {}, h("tr", {}, headers.map((x) => (typeof x === "string" ? h("th", { scope: "col" }, x) : x)))),
+    h("tbody", {}, rows));
+}

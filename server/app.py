@@ -1,0 +1,258 @@
+"""The console service's FastAPI application factory: `create_app(settings)`.
+
+REST under `/api/v1`, the telemetry WebSocket, OpenAPI at `/docs`, and the clinician web app
+(`frontend_static/`) at `/`. On start it upgrades the database (Alembic), starts the real-time worker
+when one is installed, and runs the session recorder. See docs/service.md.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import importlib.metadata
+import logging
+import math
+from collections.abc import AsyncIterator
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request, status
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+from sqlalchemy.exc import IntegrityError
+
+from core.robot import default_twin, load_twin
+from server.auth.dependencies import AuthState
+from server.auth.security import TokenSigner
+from server.auth.throttle import LoginThrottle
+from server.db import Database, create_database_engine, load_models, upgrade_database
+from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
+from server.prescriptions.validation import robot_limits
+from server.sessions.recorder import SessionRecorder
+from server.sessions.worker import WorkerControl, start_worker
+from server.settings import Settings
+from server.viz.view import start_view
+
+logger = logging.getLogger(__name__)
+
+API_PREFIX = "/api/v1"
+START_WORKER = object()  # `create_app(worker=...)` default: start the real worker if settings allow it
+
+
+class RedactQueryStrings(logging.Filter):
+    """Drop query strings from uvicorn's access log: searches carry patient names and record numbers."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple) and len(record.args) >= 3:
+            args = list(record.args)
+            if isinstance(args[2], str):
+                args[2] = args[2].split("?", 1)[0]
+                record.args = tuple(args)
+        return True
+
+
+def _install_access_log_redaction() -> None:
+    access_logger = logging.getLogger("uvicorn.access")
+    if not any(isinstance(f, RedactQueryStrings) for f in access_logger.filters):
+        access_logger.addFilter(RedactQueryStrings())
+
+
+def _json_safe(value: Any) -> Any:
+    """Echoed input with non-finite numbers as text: JSON has no NaN, and a refusal must not fail to send."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {key: _json_safe(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(item) for item in value]
+    return value
+
+
+def _error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(RequestValidationError)
+    async def unprocessable(_request: Request, error: RequestValidationError) -> JSONResponse:
+        detail = _json_safe(jsonable_encoder(error.errors()))
+        return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+    @app.exception_handler(NotFoundError)
+    async def not_found(_request: Request, error: NotFoundError) -> JSONResponse:
+        return JSONResponse({"detail": str(error)}, status_code=status.HTTP_404_NOT_FOUND)
+
+    @app.exception_handler(ConflictError)
+    async def conflict(_request: Request, error: ConflictError) -> JSONResponse:
+        return JSONResponse({"detail": str(error), "field": error.field}, status_code=status.HTTP_409_CONFLICT)
+
+    @app.exception_handler(InvalidFieldError)
+    async def invalid(_request: Request, error: InvalidFieldError) -> JSONResponse:
+        # The same shape as FastAPI's own 422, so that clients read every refusal the same way.
+        detail = [
+            {
+                "loc": ["body", *error.field.split(".")],
+                "msg": f"{error.field} = {error.value!r}: {error.limit}",
+                "type": "value_error",
+            }
+        ]
+        return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+    @app.exception_handler(WorkerUnavailableError)
+    async def no_worker(_request: Request, error: WorkerUnavailableError) -> JSONResponse:
+        return JSONResponse({"detail": str(error)}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE)
+
+    @app.exception_handler(IntegrityError)
+    async def integrity(_request: Request, _error: IntegrityError) -> JSONResponse:
+        # A concurrent change won the race (unique key, foreign key); the transaction was rolled back.
+        return JSONResponse(
+            {"detail": "conflicting concurrent change: nothing was written, try again"},
+            status_code=status.HTTP_409_CONFLICT,
+        )
+
+
+def _announce_first_start(database: Database, settings: Settings) -> None:
+    from server.users.service import count_users
+
+    with database.session() as session:
+        if count_users(session=session) == 0:
+            logger.warning(
+                "no accounts yet: create the first admin with\n"
+                "    ssp-rehab create-user --username admin --password '<password>' --role admin --data-dir %s",
+                settings.data_dir,
+            )
+
+
+def _api_router() -> APIRouter:
+    from server.audit.routes import router as audit_router
+    from server.auth.routes import public_router as auth_public_router
+    from server.auth.routes import router as auth_router
+    from server.patients.routes import router as patients_router
+    from server.prescriptions.preview import router as prescription_preview_router
+    from server.prescriptions.routes import router as prescriptions_router
+    from server.scheduling.routes import router as scheduling_router
+    from server.sessions.balance import router as balance_router
+    from server.sessions.routes import estop_router, websocket_router
+    from server.sessions.routes import router as sessions_router
+    from server.users.routes import router as users_router
+    from server.viz.routes import router as viz_router
+
+    api = APIRouter(prefix=API_PREFIX)
+
+    @api.get("/health", tags=["health"])
+    def health(request: Request) -> dict[str, Any]:
+        """Public liveness check: the service is up; whether a robot is connected."""
+        return {"status": "ok", "robot_connected": request.app.state.worker is not None}
+
+    for router in (
+        auth_public_router,
+        auth_router,
+        users_router,
+        patients_router,
+        balance_router,
+        prescription_preview_router,
+        prescriptions_router,
+        scheduling_router,
+        sessions_router,
+        estop_router,
+        audit_router,
+        viz_router,
+        websocket_router,
+    ):
+        api.include_router(router)
+    return api
+
+
+def create_app(
+    settings: Settings | None = None, *, database: Database | None = None, worker: Any = START_WORKER
+) -> FastAPI:
+    """The service. `database` and `worker` are injected by tests; by default the database comes from the
+    settings (and is upgraded to the latest schema) and the real-time worker is started if installed."""
+    settings = settings or Settings()
+    load_models()
+    twin = load_twin(settings.robot_file) if settings.robot_file else default_twin()
+    secret_key = settings.resolved_secret_key()
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        owned_engine = None
+        app.state.database = database
+        if database is None:
+            owned_engine = create_database_engine(settings.resolved_database_url())
+            await asyncio.to_thread(upgrade_database, owned_engine)
+            app.state.database = Database(owned_engine)
+        await asyncio.to_thread(_announce_first_start, app.state.database, settings)
+        started_here = worker is START_WORKER
+        active_worker: WorkerControl | None = (
+            (await asyncio.to_thread(start_worker, settings) if settings.start_worker else None)
+            if started_here
+            else worker
+        )
+        app.state.worker = active_worker
+        app.state.viz = await asyncio.to_thread(start_view, settings, twin, active_worker) if started_here else None
+        recorder_task = None
+        if active_worker is not None:
+            app.state.recorder = SessionRecorder(
+                worker=active_worker,
+                database=app.state.database,
+                telemetry_rate_hz=settings.telemetry_rate_hz,
+                flush_interval_s=settings.log_flush_interval_s,
+            )
+            recorder_task = asyncio.create_task(app.state.recorder.run_forever())
+        try:
+            yield
+        finally:
+            if app.state.viz is not None:
+                await asyncio.to_thread(app.state.viz.stop)
+            if recorder_task is not None:
+                recorder_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await recorder_task
+                await asyncio.to_thread(app.state.recorder.finish_run)
+            if started_here and active_worker is not None:
+                await asyncio.to_thread(active_worker.shutdown)
+            if owned_engine is not None:
+                owned_engine.dispose()
+
+    app = FastAPI(
+        title="ssp-rehab console",
+        version=_version(),
+        description="Therapist console of the twin 6-SSP balance-rehabilitation robot. Log in with "
+        "`POST /api/v1/auth/login`, then send the `access_token` as a bearer token (or use the session cookie).",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.twin = twin
+    app.state.robot_limits = robot_limits(twin)
+    app.state.pseudonym_key = hmac.new(secret_key, b"patient pseudonyms", hashlib.sha256).digest()
+    app.state.auth = AuthState(
+        signer=TokenSigner(secret_key),
+        throttle=LoginThrottle(settings.login_max_failures, settings.login_window_s),
+        cookie_name=settings.cookie_name,
+    )
+    app.state.database = database
+    app.state.worker = None
+    app.state.recorder = None
+    app.state.viz = None
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_credentials=True,
+            allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
+    _error_handlers(app)
+    app.include_router(_api_router())
+    frontend = settings.resolved_frontend_dir()
+    if frontend is not None:
+        app.mount("/", StaticFiles(directory=frontend, html=True), name="frontend")
+    _install_access_log_redaction()
+    return app
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("ssp-rehab")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"

@@ -1,0 +1,1 @@
+"""Audit log: who read or changed which patient record, and who commanded motion."""

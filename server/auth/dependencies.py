@@ -1,0 +1,115 @@
+"""Request authentication and role checks, as FastAPI dependencies.
+
+`authenticated_claims` checks only the token's signature, expiry and this process's revocation list: no
+database. The emergency stop uses it alone. `current_user` adds the login-session and account checks
+that every other protected route relies on.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import threading
+from dataclasses import dataclass, field
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from starlette.requests import HTTPConnection
+
+from server.auth.models import AuthSession
+from server.auth.security import TokenClaims, TokenSigner
+from server.auth.throttle import LoginThrottle
+from server.db import SessionDep, utc_now
+from server.users.models import User
+
+# Declared for OpenAPI (the "Authorize" button); the checks below read the request themselves.
+bearer_scheme = HTTPBearer(auto_error=False, description="The `access_token` from POST /api/v1/auth/login.")
+
+
+@dataclass
+class AuthState:
+    signer: TokenSigner
+    throttle: LoginThrottle
+    cookie_name: str
+    revoked_session_ids: set[str] = field(default_factory=set)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def revoke(self, session_id: str) -> None:
+        with self.lock:
+            self.revoked_session_ids.add(session_id)
+
+    def is_revoked(self, session_id: str) -> bool:
+        with self.lock:
+            return session_id in self.revoked_session_ids
+
+
+def unauthorized(detail: str = "not authenticated: log in first") -> HTTPException:
+    return HTTPException(status.HTTP_401_UNAUTHORIZED, detail=detail, headers={"WWW-Authenticate": "Bearer"})
+
+
+def auth_state(request: HTTPConnection) -> AuthState:
+    state: AuthState = request.app.state.auth
+    return state
+
+
+def token_from_request(request: HTTPConnection, cookie_name: str) -> str | None:
+    header = request.headers.get("authorization", "")
+    scheme, _, credentials = header.partition(" ")
+    if scheme.lower() == "bearer" and credentials.strip():
+        return credentials.strip()
+    return request.cookies.get(cookie_name) or None
+
+
+def claims_for_token(token: str | None, state: AuthState) -> TokenClaims | None:
+    if not token:
+        return None
+    claims = state.signer.verify(token)
+    if claims is None or state.is_revoked(claims.session_id):
+        return None
+    return claims
+
+
+async def authenticated_claims(
+    request: Request, _bearer: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)] = None
+) -> TokenClaims:
+    state = auth_state(request)
+    claims = claims_for_token(token_from_request(request, state.cookie_name), state)
+    if claims is None:
+        raise unauthorized()
+    return claims
+
+
+def user_for_claims(session: SessionDep, claims: TokenClaims) -> User | None:
+    login = session.get(AuthSession, claims.session_id)
+    if (
+        login is None
+        or login.revoked_at is not None
+        or login.expires_at <= utc_now()
+        or login.user_id != claims.user_id
+    ):
+        return None
+    user = session.get(User, claims.user_id)
+    return user if user is not None and user.is_active else None
+
+
+def current_user(session: SessionDep, claims: Annotated[TokenClaims, Depends(authenticated_claims)]) -> User:
+    user = user_for_claims(session, claims)
+    if user is None:
+        raise unauthorized("login session ended: log in again")
+    return user
+
+
+CurrentUser = Annotated[User, Depends(current_user)]
+
+
+def require_admin(user: CurrentUser) -> User:
+    if user.role != "admin":
+        raise HTTPException(status.HTTP_403_FORBIDDEN, detail=f"role = {user.role!r}: this needs the admin role")
+    return user
+
+
+AdminUser = Annotated[User, Depends(require_admin)]
+
+
+def expires_at(claims: TokenClaims) -> dt.datetime:
+    return dt.datetime.fromtimestamp(claims.expires_at_epoch_s, dt.UTC)

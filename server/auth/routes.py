@@ -1,0 +1,75 @@
+"""`POST /auth/login` (public), `POST /auth/logout`, `GET /auth/me`."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
+
+from server.auth import service
+from server.auth.dependencies import CurrentUser, auth_state, authenticated_claims, current_user
+from server.auth.schemas import LoginRequest, LoginResult
+from server.auth.security import TokenClaims
+from server.db import SessionDep
+from server.users.schemas import UserOut
+
+public_router = APIRouter(prefix="/auth", tags=["auth"])
+router = APIRouter(prefix="/auth", tags=["auth"], dependencies=[Depends(current_user)])
+
+
+@public_router.post(
+    "/login",
+    response_model=LoginResult,
+    responses={401: {"description": "Wrong username or password"}, 429: {"description": "Too many failed logins"}},
+)
+def login(data: LoginRequest, request: Request, response: Response, session: SessionDep) -> LoginResult:
+    """Answers with a session cookie (HttpOnly, SameSite=Strict) and the same token as a bearer token."""
+    state = auth_state(request)
+    settings = request.app.state.settings
+    user_key = f"user:{data.username.lower()}"
+    throttle_keys = (user_key, f"client:{request.client.host if request.client else 'unknown'}")
+    retry_after = state.throttle.retry_after_s(throttle_keys)
+    if retry_after is not None:
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            detail=f"too many failed logins: try again in {retry_after:.0f} s",
+            headers={"Retry-After": str(max(1, round(retry_after)))},
+        )
+    user = service.authenticate(session=session, username=data.username, password=data.password)
+    if user is None:
+        state.throttle.record_failure(throttle_keys)
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, detail="wrong username or password")
+    state.throttle.record_success((user_key,))
+    token, expires_at = service.open_login_session(
+        session=session, user=user, signer=state.signer, lifetime_s=settings.token_lifetime_s
+    )
+    response.set_cookie(
+        state.cookie_name,
+        token,
+        max_age=settings.token_lifetime_s,
+        httponly=True,
+        samesite="strict",
+        secure=settings.cookie_secure,
+        path="/",
+    )
+    return LoginResult(access_token=token, expires_at=expires_at, user=UserOut.model_validate(user))
+
+
+@router.post("/logout", status_code=status.HTTP_204_NO_CONTENT)
+def logout(
+    request: Request,
+    session: SessionDep,
+    user: CurrentUser,
+    claims: Annotated[TokenClaims, Depends(authenticated_claims)],
+) -> Response:
+    state = auth_state(request)
+    state.revoke(claims.session_id)
+    service.revoke_login_session(session=session, session_id=claims.session_id, user_id=user.id)
+    response = Response(status_code=status.HTTP_204_NO_CONTENT)
+    response.delete_cookie(state.cookie_name, path="/", httponly=True, samesite="strict")
+    return response
+
+
+@router.get("/me", response_model=UserOut)
+def me(user: CurrentUser) -> UserOut:
+    return UserOut.model_validate(user)

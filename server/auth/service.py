@@ -1,0 +1,42 @@
+"""Login sessions: checking credentials, issuing and revoking tokens."""
+
+from __future__ import annotations
+
+import datetime as dt
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from server.audit import service as audit
+from server.auth.models import AuthSession
+from server.auth.security import TokenClaims, TokenSigner, new_session_id, verify_password
+from server.db import utc_now, writes
+from server.users.models import User
+
+
+def authenticate(*, session: Session, username: str, password: str) -> User | None:
+    """The active account these credentials belong to, or None (same cost whether or not the user exists)."""
+    user = session.scalar(select(User).where(func.lower(User.username) == username.lower()))
+    password_hash = user.password_hash if user is not None and user.is_active else None
+    return user if verify_password(password_hash, password) else None
+
+
+@writes
+def open_login_session(
+    *, session: Session, user: User, signer: TokenSigner, lifetime_s: int
+) -> tuple[str, dt.datetime]:
+    now = utc_now()
+    expires_at = (now + dt.timedelta(seconds=lifetime_s)).replace(microsecond=0)
+    login = AuthSession(id=new_session_id(), user_id=user.id, created_at=now, expires_at=expires_at)
+    session.add(login)
+    audit.record(session=session, user_id=user.id, action="login", resource_type="user", resource_id=user.id)
+    token = signer.issue(TokenClaims(login.id, user.id, int(expires_at.timestamp())))
+    return token, expires_at
+
+
+@writes
+def revoke_login_session(*, session: Session, session_id: str, user_id: int) -> None:
+    login = session.get(AuthSession, session_id)
+    if login is not None and login.revoked_at is None:
+        login.revoked_at = utc_now()
+    audit.record(session=session, user_id=user_id, action="logout", resource_type="user", resource_id=user_id)

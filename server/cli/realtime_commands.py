@@ -1,0 +1,120 @@
+"""`ssp-rehab realtime check` (the offline prescription check) and `ssp-rehab realtime run` (play a
+prescription on a spawned worker and report its timing)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from server.cli.output import console, emit, fail, progress_bar
+from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
+from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, LoopConfigError
+from server.realtime.prescription import PrescriptionError, PrescriptionRejected, check_prescription
+
+realtime_app = typer.Typer(help="The real-time worker: prescription checks and worker runs.", no_args_is_help=True)
+
+
+def _read_json(path: Path | None, what: str, as_json: bool) -> Any:
+    if path is None:
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise fail(f"{what} = {str(path)!r}: not a readable JSON file ({error})", as_json=as_json) from None
+
+
+def _human_report(data: dict[str, Any]) -> None:
+    if "rejected" in data:
+        rejected = data["rejected"]
+        console.print(f"[bold red]refused[/]: {rejected['message']}")
+        return
+    console.print(f"[bold green]accepted[/]: {data['samples']} samples, {data['duration_s']:.3f} s with transitions")
+    for name, use in sorted(data["peak_use"].items()):
+        console.print(f"  {name:22s} peak {100 * use:6.1f} % of its limit")
+
+
+@realtime_app.command("check")
+def check(
+    prescription_file: Path = typer.Argument(..., help="Prescription JSON: {'segments': [...]}"),
+    patient_file: Path | None = typer.Option(None, "--patient", help="Patient JSON: body_mass_kg, height_m, preset."),
+    control_rate_hz: int = typer.Option(DEFAULT_CONTROL_RATE_HZ, "--rate", help="Control rate, 250–2000 Hz."),
+    robot_file: Path | None = ROBOT_OPTION,
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Run a prescription offline through the batch pipeline; refuse it if any limit would be exceeded."""
+    prescription = _read_json(prescription_file, "prescription_file", as_json)
+    patient = _read_json(patient_file, "patient_file", as_json)
+    try:
+        report = check_prescription(
+            prescription, twin_from_option(robot_file), control_rate_hz=control_rate_hz, patient=patient
+        )
+    except PrescriptionRejected as rejected:
+        emit({"rejected": rejected.to_dict()}, as_json=as_json, human=_human_report)
+        raise typer.Exit(1) from None
+    except (PrescriptionError, LoopConfigError, DescriptionError) as error:
+        raise fail(str(error), as_json=as_json) from None
+    emit(report.to_dict(), as_json=as_json, human=_human_report)
+
+
+@realtime_app.command("run")
+def run(
+    prescription_file: Path = typer.Argument(..., help="Prescription JSON to play."),
+    patient_file: Path | None = typer.Option(None, "--patient", help="Patient JSON: body_mass_kg, height_m, preset."),
+    seconds: float = typer.Option(10.0, "--seconds", min=0.5, max=3600.0, help="How long to let it play."),
+    backend: str = typer.Option("kinematic", "--backend", help="HAL backend: kinematic or sim."),
+    control_rate_hz: int = typer.Option(DEFAULT_CONTROL_RATE_HZ, "--rate", help="Control rate, 250–2000 Hz."),
+    robot_file: Path | None = ROBOT_OPTION,
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Spawn a worker, play the prescription, stop it, and report tick timing and events."""
+    from server.realtime.client import CommandRefused, WorkerClient, WorkerError
+
+    prescription = _read_json(prescription_file, "prescription_file", as_json)
+    patient = _read_json(patient_file, "patient_file", as_json)
+    try:
+        client = WorkerClient(str(robot_file) if robot_file else None, backend, control_rate_hz)
+    except (ValueError, LoopConfigError) as error:
+        raise fail(str(error), as_json=as_json) from None
+    records, events = [], []
+    try:
+        client.start()
+        client.load_prescription(prescription, patient)
+        client.start_motion()
+        with progress_bar("playing", round(seconds * 10), enabled=not as_json) as advance:
+            for _ in range(round(seconds * 10)):
+                time.sleep(0.1)
+                records.append(client.drain_telemetry())
+                advance(1)
+        client.stop()
+        deadline = time.monotonic() + 60.0
+        while client.latest_state()["state"] not in ("stopped", "idle") and time.monotonic() < deadline:
+            time.sleep(0.05)
+        records.append(client.drain_telemetry())
+        events = client.drain_events()
+    except (PrescriptionRejected, PrescriptionError, CommandRefused, WorkerError) as error:
+        raise fail(str(error), as_json=as_json) from None
+    finally:
+        client.shutdown()
+    telemetry = np.concatenate(records)
+    compute, lateness = telemetry["tick_compute_us"].astype(float), telemetry["lateness_us"].astype(float)
+    summary = {
+        "ticks": len(telemetry),
+        "tick_compute_us": {"p50": float(np.percentile(compute, 50)), "p99": float(np.percentile(compute, 99))},
+        "lateness_us": {
+            "p50": float(np.percentile(lateness, 50)),
+            "p99": float(np.percentile(lateness, 99)),
+            "max": float(lateness.max()),
+        },
+        "deadline_misses": int(telemetry["deadline_misses"][-1]),
+        "events": [{"kind": e["kind"], "tick": e["tick"], **e["details"]} for e in events],
+    }
+    emit(summary, as_json=as_json, human=lambda data: console.print_json(json.dumps(data, default=str)))
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(realtime_app, name="realtime")

@@ -1,0 +1,104 @@
+"""`ssp-rehab serve` (the console service) and `ssp-rehab create-user` (clinician accounts)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import typer
+from pydantic import ValidationError
+
+from server.cli.output import console, emit, fail
+from server.cli.robot_option import ROBOT_OPTION, DescriptionError
+
+BACKENDS = ("sim", "kinematic", "canopen")
+ROLES = ("admin", "therapist")
+DATA_DIR_HELP = "Holds the SQLite database and the token key (default ./data, or SSP_REHAB_DATA_DIR)."
+
+
+def _settings(**overrides: Any) -> Any:
+    """Settings from the environment, with the command-line options that were given taking precedence."""
+    from server.settings import Settings
+
+    return Settings(**{name: value for name, value in overrides.items() if value is not None})
+
+
+def _validation_message(error: ValidationError) -> str:
+    first = error.errors()[0]
+    field = ".".join(str(part) for part in first["loc"])
+    return f"{field} = {first.get('input')!r}: {first['msg']}"
+
+
+def register(app: typer.Typer) -> None:
+    @app.command()
+    def serve(
+        host: str = typer.Option("127.0.0.1", "--host", help="Interface to listen on."),
+        port: int = typer.Option(8000, "--port", min=1, max=65535),
+        data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+        backend: str | None = typer.Option(None, "--backend", help="Robot backend: sim (default), kinematic, canopen."),
+        robot_file: Path | None = ROBOT_OPTION,
+        no_robot: bool = typer.Option(False, "--no-robot", help="Do not start the real-time worker."),
+    ) -> None:
+        """Run the therapist console: REST API, telemetry WebSocket, web app at / and OpenAPI at /docs."""
+        import uvicorn
+
+        from server.app import create_app
+
+        if backend is not None and backend not in BACKENDS:
+            raise fail(f"--backend = {backend!r}: must be one of {', '.join(BACKENDS)}")
+        try:
+            settings = _settings(
+                data_dir=data_dir, backend=backend, robot_file=robot_file, start_worker=False if no_robot else None
+            )
+            application = create_app(settings)
+        except ValidationError as error:
+            raise fail(_validation_message(error)) from error
+        except DescriptionError as error:
+            raise fail(str(error)) from error
+        logging.basicConfig(level=logging.INFO, format="%(levelname)s [%(name)s] %(message)s")
+        if host not in ("127.0.0.1", "localhost", "::1") and not settings.cookie_secure:
+            logging.getLogger(__name__).warning(
+                "listening on %s without SSP_REHAB_COOKIE_SECURE=true: put the service behind HTTPS", host
+            )
+        console.print(
+            f"ssp-rehab console on http://{host}:{port}/  (API docs: /docs)\n"
+            f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}"
+        )
+        uvicorn.run(application, host=host, port=port, log_level="info")
+
+    @app.command("create-user")
+    def create_user(
+        username: str = typer.Option(..., "--username"),
+        password: str = typer.Option(..., "--password", prompt=True, hide_input=True, confirmation_prompt=True),
+        role: str = typer.Option(..., "--role", help="admin or therapist"),
+        full_name: str = typer.Option("", "--full-name"),
+        data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+        as_json: bool = typer.Option(False, "--json"),
+    ) -> None:
+        """Create a clinician account (the first admin, typically). Upgrades the database first."""
+        from server.db import Database, create_database_engine, upgrade_database
+        from server.errors import ConflictError, InvalidFieldError
+        from server.users.schemas import UserCreate
+        from server.users.service import create_user as create
+
+        try:
+            data = UserCreate(username=username, password=password, role=role, full_name=full_name)  # type: ignore[arg-type]
+        except ValidationError as error:
+            raise fail(_validation_message(error), as_json=as_json) from error
+        settings = _settings(data_dir=data_dir)
+        engine = create_database_engine(settings.resolved_database_url())
+        try:
+            upgrade_database(engine)
+            with Database(engine).session() as session:
+                user = create(session=session, data=data, actor_id=None)
+                result = {"id": user.id, "username": user.username, "role": user.role}
+        except (ConflictError, InvalidFieldError) as error:
+            raise fail(str(error), as_json=as_json) from error
+        finally:
+            engine.dispose()
+        emit(
+            result,
+            as_json=as_json,
+            human=lambda r: console.print(f"created {r['role']} account [bold]{r['username']}[/] (id {r['id']})"),
+        )

@@ -1,0 +1,222 @@
+"""Database plumbing: engine, sessions, the declarative base and running the Alembic migrations.
+
+Alembic (migrations/) is the only thing that creates or changes the schema. SQLite is the embedded
+default; PostgreSQL (psycopg 3) is selected by URL. Service functions take the ORM session explicitly
+and commit once, so a request either writes everything or nothing.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import functools
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any, ParamSpec, TypeVar
+
+from fastapi import Depends, Request
+from sqlalchemy import DateTime, Engine, MetaData, create_engine, event, text
+from sqlalchemy.engine import Connection, Dialect, make_url
+from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
+from sqlalchemy.types import TypeDecorator
+
+P = ParamSpec("P")
+R = TypeVar("R")
+MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+
+# Stable constraint names so that migrations can refer to them on every backend.
+NAMING_CONVENTION = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+
+
+class Base(DeclarativeBase):
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+
+
+class UTCDateTime(TypeDecorator[dt.datetime]):
+    """Stored as naive UTC on every backend; always handed back timezone-aware (UTC)."""
+
+    impl = DateTime
+    cache_ok = True
+
+    def process_bind_param(self, value: dt.datetime | None, dialect: Dialect) -> dt.datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("naive datetime given to a UTC column")
+        return value.astimezone(dt.UTC).replace(tzinfo=None)
+
+    def process_result_value(self, value: dt.datetime | None, dialect: Dialect) -> dt.datetime | None:
+        return None if value is None else value.replace(tzinfo=dt.UTC)
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
+
+
+def is_sqlite(url: str) -> bool:
+    return make_url(url).get_backend_name() == "sqlite"
+
+
+def create_database_engine(url: str, **engine_options: Any) -> Engine:
+    """An engine with the settings this service relies on (SQLite: foreign keys, WAL, serialised writers)."""
+    if not is_sqlite(url):
+        return create_engine(
+            url, pool_pre_ping=True, pool_size=10, max_overflow=30, hide_parameters=True, **engine_options
+        )
+    database = make_url(url).database
+    if database and database != ":memory:":
+        Path(database).parent.mkdir(parents=True, exist_ok=True)
+    engine = create_engine(
+        url,
+        connect_args={"check_same_thread": False, "timeout": 30},
+        hide_parameters=True,
+        pool_size=20,
+        max_overflow=30,
+        **engine_options,
+    )
+
+    @event.listens_for(engine, "connect")
+    def _configure(dbapi_connection: Any, _record: Any) -> None:
+        # Take over transaction control from pysqlite so that SAVEPOINT and BEGIN IMMEDIATE work (SQLAlchemy docs).
+        dbapi_connection.isolation_level = None
+        dbapi_connection.execute("PRAGMA foreign_keys = ON")
+        dbapi_connection.execute("PRAGMA journal_mode = WAL")
+        dbapi_connection.execute("PRAGMA synchronous = NORMAL")
+
+    @event.listens_for(engine, "begin")
+    def _begin(connection: Connection) -> None:
+        # A writing transaction takes the write lock up front (see write_transaction); readers stay deferred,
+        # and in WAL mode they never block the writer.
+        writing = connection.get_execution_options().get(WRITE_LOCK_OPTION, False)
+        connection.exec_driver_sql("BEGIN IMMEDIATE" if writing else "BEGIN")
+
+    return engine
+
+
+WRITE_LOCK_OPTION = "ssp_rehab_write_lock"
+
+
+@contextmanager
+def write_transaction(session: Session) -> Iterator[Session]:
+    """One writing transaction, committed on success and rolled back before any error leaves.
+
+    On SQLite it starts with BEGIN IMMEDIATE, so a read-then-write (audit on read, booking conflict checks)
+    waits its turn instead of failing on a stale snapshot, and the write lock never outlives this call: a
+    lock held across an await would stall every other request thread until the busy timeout. A read
+    transaction still open in `session` (the authentication check) is ended first; it wrote nothing.
+    """
+    if session.in_transaction():
+        session.commit()
+    session.connection(execution_options={WRITE_LOCK_OPTION: True})
+    try:
+        yield session
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+
+
+def writes(function: Callable[P, R]) -> Callable[P, R]:
+    """Run a keyword-only service function taking `session=` inside one `write_transaction`."""
+
+    @functools.wraps(function)
+    def in_write_transaction(*args: P.args, **kwargs: P.kwargs) -> R:
+        session = kwargs["session"]
+        assert isinstance(session, Session)
+        with write_transaction(session):
+            return function(*args, **kwargs)
+
+    return in_write_transaction
+
+
+def alembic_config(connection: Connection | None = None, url: str | None = None) -> Any:
+    from alembic.config import Config
+
+    config = Config(str(MIGRATIONS_DIR / "alembic.ini"))
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    if url is not None:
+        config.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
+    config.attributes["connection"] = connection
+    return config
+
+
+def upgrade_database(engine: Engine, revision: str = "head") -> None:
+    from alembic import command
+
+    with engine.begin() as connection:
+        command.upgrade(alembic_config(connection), revision)
+
+
+def downgrade_database(engine: Engine, revision: str = "base") -> None:
+    from alembic import command
+
+    with engine.begin() as connection:
+        command.downgrade(alembic_config(connection), revision)
+
+
+def current_revision(engine: Engine) -> str | None:
+    with engine.connect() as connection:
+        try:
+            return connection.execute(text("SELECT version_num FROM alembic_version")).scalar()
+        except Exception:
+            return None
+
+
+class Database:
+    """Hands out ORM sessions. Bound to one connection (tests: a transaction rolled back afterwards),
+    access is serialised, because the request threads and the session recorder would otherwise share it."""
+
+    def __init__(self, engine: Engine, *, connection: Connection | None = None) -> None:
+        self.engine = engine
+        self.dialect_name = engine.dialect.name
+        self._single_connection_lock = threading.RLock() if connection is not None else None
+        self._factory = sessionmaker(
+            bind=connection if connection is not None else engine,
+            expire_on_commit=False,
+            join_transaction_mode="create_savepoint",
+        )
+
+    @contextmanager
+    def session(self) -> Iterator[Session]:
+        if self._single_connection_lock is None:
+            with self._factory() as session:
+                yield session
+            return
+        with self._single_connection_lock, self._factory() as session:
+            yield session
+
+
+def get_session(request: Request) -> Iterator[Session]:
+    database: Database = request.app.state.database
+    with database.session() as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(get_session)]
+
+
+MODEL_MODULES = (
+    "server.users.models",
+    "server.auth.models",
+    "server.patients.models",
+    "server.prescriptions.models",
+    "server.scheduling.models",
+    "server.sessions.models",
+    "server.audit.models",
+)
+
+
+def load_models() -> MetaData:
+    """Import every domain's models so that `Base.metadata` is complete (Alembic, schema checks)."""
+    import importlib
+
+    for module_name in MODEL_MODULES:
+        importlib.import_module(module_name)
+    return Base.metadata

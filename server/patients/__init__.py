@@ -1,0 +1,1 @@
+"""Patient records; every read and change is written to the audit log."""

@@ -1,0 +1,35 @@
+"""Patient records: identity, anthropometrics (SI) and the clinical context of balance training."""
+
+from __future__ import annotations
+
+import datetime as dt
+
+from sqlalchemy import CheckConstraint, Date, Float, String, Text
+from sqlalchemy.orm import Mapped, mapped_column
+
+from server.db import Base, UTCDateTime, utc_now
+
+SEXES = ("female", "male", "other", "unknown")
+AFFECTED_SIDES = ("left", "right", "both", "none")
+
+
+class Patient(Base):
+    __tablename__ = "patients"
+    __table_args__ = (
+        CheckConstraint("height_m > 0", name="height_positive"),
+        CheckConstraint("body_mass_kg > 0", name="body_mass_positive"),
+    )
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    identifier: Mapped[str] = mapped_column(String(64), unique=True)
+    name: Mapped[str] = mapped_column(String(200))
+    date_of_birth: Mapped[dt.date] = mapped_column(Date)
+    sex: Mapped[str] = mapped_column(String(16))
+    height_m: Mapped[float] = mapped_column(Float)
+    body_mass_kg: Mapped[float] = mapped_column(Float)
+    diagnosis: Mapped[str] = mapped_column(String(200), default="", index=True)
+    affected_side: Mapped[str] = mapped_column(String(8), default="none")
+    contraindications: Mapped[str] = mapped_column(Text, default="")
+    notes: Mapped[str] = mapped_column(Text, default="")
+    created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utc_now)
+    updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utc_now, onupdate=utc_now)

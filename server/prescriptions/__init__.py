@@ -1,0 +1,1 @@
+"""Prescriptions: ordered exercise segments (cue, duration, washout, limits); editing adds a version."""

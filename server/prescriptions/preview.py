@@ -1,0 +1,151 @@
+"""`POST /prescriptions/preview`: what a prescription would do, before it is stored or run.
+
+It plays the prescription offline through the worker's own batch pipeline (`server.realtime.prescription`:
+cue × soft-start/fade gains → washout (paper §4.1) → command shaping → quintic return to neutral →
+twin IK), then reports, decimated for plotting:
+- the platform motion (stance pose, m and rad);
+- the specific force the patient should feel (the cue) and the one the platform gives
+  (`core.fidelity.platform_specific_force`), each through the otolith model (Formula 14) — the perceived
+  accelerations;
+- every slider's position against its stroke;
+and the worker's verdict (`check_plan`): the peak use of every limit, or the first limit it would break.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, Request
+from pydantic import ConfigDict, Field
+
+from core.fidelity import platform_specific_force
+from core.kinematics import twin_inverse_kinematics
+from core.robot import TwinRobot
+from core.vestibular import VestibularModel
+from server.api_types import MAX_ID, RequestModel
+from server.auth.dependencies import CurrentUser, current_user
+from server.db import SessionDep
+from server.errors import InvalidFieldError
+from server.patients.service import read_patient
+from server.prescriptions.schemas import EXAMPLE_SEGMENT, Segments
+from server.prescriptions.validation import validated_prescription
+from server.realtime.prescription import (
+    PrescriptionError,
+    PrescriptionPlan,
+    PrescriptionRejected,
+    check_plan,
+    finite_differences,
+    plan_prescription,
+    return_ramp,
+    segment_cue_poses,
+)
+from server.realtime.ramps import cue_gains
+
+router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
+
+PREVIEW_DURATION_MAX_S = 600.0  # bounds the work (and memory) of one preview at the control rate
+PREVIEW_POINTS = 1200  # per curve: enough for a plot a screen wide
+
+
+class PreviewRequest(RequestModel):
+    segments: Segments
+    patient_id: Annotated[int | None, Field(ge=1, le=MAX_ID, description="Payload for the dynamics check.")] = None
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"segments": [EXAMPLE_SEGMENT]}]})
+
+
+def _timeline(plan: PrescriptionPlan) -> dict[str, np.ndarray]:
+    """Every control tick of the whole prescription: cue (N, 3) ×2 as played, stance pose, velocity, acceleration."""
+    period, config = plan.sample_period_s, plan.config
+    previous_pose, previous_velocity = np.zeros(6), np.zeros(6)
+    parts: dict[str, list[np.ndarray]] = {"force": [], "poses": [], "velocity": [], "acceleration": [], "segment": []}
+    for segment in plan.segments:
+        force, _, cue_poses = segment_cue_poses(segment, period, config)
+        force = force * cue_gains(np.arange(len(force)) * period, segment.duration_s, config.soft_start_s,
+                                  config.fade_out_s)[:, None]  # fmt: skip
+        velocity, acceleration = finite_differences(cue_poses, period, previous_pose, previous_velocity)
+        back = return_ramp(cue_poses[-1], velocity[-1], acceleration[-1], period, config)
+        poses = np.concatenate([cue_poses, back])
+        velocity, acceleration = finite_differences(poses, period, previous_pose, previous_velocity)
+        parts["force"].append(np.concatenate([force, np.zeros((len(back), 3))]))
+        parts["poses"].append(poses)
+        parts["velocity"].append(velocity)
+        parts["acceleration"].append(acceleration)
+        parts["segment"].append(np.full(len(poses), segment.index))
+        previous_pose, previous_velocity = poses[-1], velocity[-1]
+    return {name: np.concatenate(values) for name, values in parts.items()}
+
+
+def prescription_preview(
+    prescription: dict[str, Any], twin: TwinRobot, *, control_rate_hz: int, patient: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """The preview of a validated prescription (SI units, time-major lists) and the worker's verdict."""
+    try:
+        plan = plan_prescription(prescription, twin, control_rate_hz=control_rate_hz, patient=patient)
+    except PrescriptionError as error:
+        raise InvalidFieldError(error.field, error.value, error.limit) from error
+    total_s = sum(s.duration_s + plan.config.fade_out_s for s in plan.segments)
+    if total_s > PREVIEW_DURATION_MAX_S:
+        raise InvalidFieldError(
+            "segments", f"{total_s:g} s in all", f"the preview covers at most {PREVIEW_DURATION_MAX_S:g} s"
+        )
+    period = plan.sample_period_s
+    timeline = _timeline(plan)
+    poses, acceleration = timeline["poses"], timeline["acceleration"]
+    platform_force = platform_specific_force(poses.T, acceleration.T).T
+    otoliths = VestibularModel(sample_period_s=period)
+    rows = np.unique(np.linspace(0, len(poses) - 1, min(PREVIEW_POINTS, len(poses))).round().astype(int))
+    # IK is per sample, so solving only the plotted rows gives the same positions for a fraction of the work.
+    solutions = twin_inverse_kinematics(twin, poses[rows], check=False)
+    sliders = np.full((len(poses), 12), np.nan)
+    sliders[rows] = np.concatenate([solutions[side].slider_positions_m for side in twin.sides], axis=1)
+    robots = [twin.robot_for(side) for side in twin.sides]
+    try:
+        verdict: dict[str, Any] = {"accepted": True, "report": check_plan(plan, twin).to_dict()}
+    except PrescriptionRejected as rejection:
+        verdict = {"accepted": False, "rejection": rejection.to_dict()}
+
+    def series(values: np.ndarray) -> list[Any]:
+        picked = values[rows]
+        # JSON has no NaN: an unreachable pose (no IK solution) is sent as null, and shown as a gap.
+        return [None if not np.isfinite(v) else round(float(v), 6) for v in picked] if picked.ndim == 1 else [
+            [None if not np.isfinite(v) else round(float(v), 6) for v in column] for column in picked.T
+        ]  # fmt: skip
+
+    return {
+        "sample_rate_hz": control_rate_hz,
+        "duration_s": round(len(poses) * period, 6),
+        "time_s": series(np.arange(len(poses)) * period),
+        "segment": timeline["segment"][rows].tolist(),
+        "platform_position_m": series(poses[:, :3]),
+        "platform_angles_rad": series(poses[:, 3:]),
+        "cue_specific_force_m_s2": series(timeline["force"]),
+        "platform_specific_force_m_s2": series(platform_force),
+        "perceived_cue_m_s2": series(otoliths.perceive_specific_force(timeline["force"])),
+        "perceived_platform_m_s2": series(otoliths.perceive_specific_force(platform_force)),
+        "slider_position_m": series(sliders),
+        "stroke_min_m": np.concatenate([r.stroke_min_m for r in robots]).tolist(),
+        "stroke_max_m": np.concatenate([r.stroke_max_m for r in robots]).tolist(),
+        "verdict": verdict,
+    }
+
+
+@router.post("/preview", responses={422: {"description": "A field is invalid; the answer names it"}})
+def preview_prescription(
+    data: PreviewRequest, request: Request, session: SessionDep, user: CurrentUser
+) -> dict[str, Any]:
+    """Plots-ready preview of the segments as the robot would play them, and whether the robot accepts them."""
+    prescription = validated_prescription(
+        [s.model_dump() for s in data.segments], limits=request.app.state.robot_limits
+    )
+    patient = None
+    if data.patient_id is not None:
+        record = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
+        patient = {"body_mass_kg": record.body_mass_kg, "height_m": record.height_m}
+    return prescription_preview(
+        prescription,
+        request.app.state.twin,
+        control_rate_hz=request.app.state.settings.control_rate_hz,
+        patient=patient,
+    )

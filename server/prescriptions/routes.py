@@ -1,0 +1,86 @@
+"""`/prescriptions`: create, list, read, revise (new version), read a given version."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Path, Query, Request, status
+
+from server.api_types import MAX_ID, IdPath, Limit, Offset
+from server.auth.dependencies import CurrentUser, current_user
+from server.db import SessionDep
+from server.prescriptions import service
+from server.prescriptions.models import Prescription
+from server.prescriptions.schemas import (
+    PrescriptionCreate,
+    PrescriptionOut,
+    PrescriptionRevise,
+    PrescriptionVersionOut,
+)
+
+router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
+VersionPath = Annotated[int, Path(ge=1, le=MAX_ID)]
+
+
+def _out(prescription: Prescription) -> PrescriptionOut:
+    current = PrescriptionVersionOut.model_validate(service.latest(prescription))
+    return PrescriptionOut(
+        id=prescription.id,
+        patient_id=prescription.patient_id,
+        name=prescription.name,
+        latest_version=prescription.latest_version,
+        created_at=prescription.created_at,
+        current=current,
+    )
+
+
+def _limits(request: Request) -> dict[str, float]:
+    limits: dict[str, float] = request.app.state.robot_limits
+    return limits
+
+
+@router.get("", response_model=list[PrescriptionOut])
+def list_prescriptions(
+    session: SessionDep,
+    patient_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
+    limit: Limit = 100,
+    offset: Offset = 0,
+) -> list[PrescriptionOut]:
+    prescriptions = service.list_prescriptions(session=session, patient_id=patient_id, limit=limit, offset=offset)
+    return [_out(p) for p in prescriptions]
+
+
+@router.post("", response_model=PrescriptionOut, status_code=status.HTTP_201_CREATED)
+def create_prescription(
+    data: PrescriptionCreate, request: Request, session: SessionDep, user: CurrentUser
+) -> PrescriptionOut:
+    prescription = service.create_prescription(session=session, data=data, limits=_limits(request), actor_id=user.id)
+    return _out(prescription)
+
+
+@router.get("/{prescription_id}", response_model=PrescriptionOut)
+def get_prescription(prescription_id: IdPath, session: SessionDep) -> PrescriptionOut:
+    return _out(service.get_prescription(session=session, prescription_id=prescription_id))
+
+
+@router.put("/{prescription_id}", response_model=PrescriptionOut)
+def revise_prescription(
+    prescription_id: IdPath, data: PrescriptionRevise, request: Request, session: SessionDep, user: CurrentUser
+) -> PrescriptionOut:
+    """Editing creates a new version; sessions keep referring to the version they were scheduled with."""
+    prescription = service.revise_prescription(
+        session=session, prescription_id=prescription_id, data=data, limits=_limits(request), actor_id=user.id
+    )
+    return _out(prescription)
+
+
+@router.get("/{prescription_id}/versions", response_model=list[PrescriptionVersionOut])
+def list_versions(prescription_id: IdPath, session: SessionDep) -> list[PrescriptionVersionOut]:
+    prescription = service.get_prescription(session=session, prescription_id=prescription_id)
+    return [PrescriptionVersionOut.model_validate(v) for v in prescription.versions]
+
+
+@router.get("/{prescription_id}/versions/{version}", response_model=PrescriptionVersionOut)
+def get_version(prescription_id: IdPath, version: VersionPath, session: SessionDep) -> PrescriptionVersionOut:
+    found = service.get_version(session=session, prescription_id=prescription_id, version=version)
+    return PrescriptionVersionOut.model_validate(found)

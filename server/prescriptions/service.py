@@ -1,0 +1,97 @@
+"""Prescription service functions. Versions are immutable: a revision adds version n+1."""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from server.audit import service as audit
+from server.db import writes
+from server.errors import NotFoundError
+from server.patients.service import find_patient
+from server.prescriptions.models import Prescription, PrescriptionVersion
+from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise, SegmentIn
+from server.prescriptions.validation import validated_prescription
+
+
+def _content(segments: list[SegmentIn], limits: dict[str, float]) -> dict[str, object]:
+    return validated_prescription([s.model_dump() for s in segments], limits=limits)
+
+
+def get_prescription(*, session: Session, prescription_id: int) -> Prescription:
+    prescription = session.get(Prescription, prescription_id)
+    if prescription is None:
+        raise NotFoundError("prescription", prescription_id)
+    return prescription
+
+
+def get_version(*, session: Session, prescription_id: int, version: int) -> PrescriptionVersion:
+    found = session.scalar(
+        select(PrescriptionVersion).where(
+            PrescriptionVersion.prescription_id == prescription_id, PrescriptionVersion.version == version
+        )
+    )
+    if found is None:
+        raise NotFoundError(f"prescription {prescription_id} version", version)
+    return found
+
+
+def latest(prescription: Prescription) -> PrescriptionVersion:
+    return prescription.versions[-1]
+
+
+@writes
+def create_prescription(
+    *, session: Session, data: PrescriptionCreate, limits: dict[str, float], actor_id: int
+) -> Prescription:
+    find_patient(session=session, patient_id=data.patient_id)
+    content = _content(data.segments, limits)
+    prescription = Prescription(patient_id=data.patient_id, name=data.name, latest_version=1, created_by_id=actor_id)
+    prescription.versions.append(
+        PrescriptionVersion(version=1, content=content, note=data.note, created_by_id=actor_id)
+    )
+    session.add(prescription)
+    session.flush()
+    audit.record(
+        session=session,
+        user_id=actor_id,
+        action="create",
+        resource_type="prescription",
+        resource_id=prescription.id,
+        details={"patient_id": data.patient_id, "version": 1},
+    )
+    return prescription
+
+
+@writes
+def revise_prescription(
+    *, session: Session, prescription_id: int, data: PrescriptionRevise, limits: dict[str, float], actor_id: int
+) -> Prescription:
+    prescription = get_prescription(session=session, prescription_id=prescription_id)
+    content = _content(data.segments, limits)
+    prescription.latest_version += 1
+    if data.name is not None:
+        prescription.name = data.name
+    prescription.versions.append(
+        PrescriptionVersion(
+            version=prescription.latest_version, content=content, note=data.note, created_by_id=actor_id
+        )
+    )
+    audit.record(
+        session=session,
+        user_id=actor_id,
+        action="update",
+        resource_type="prescription",
+        resource_id=prescription.id,
+        details={"patient_id": prescription.patient_id, "version": prescription.latest_version},
+    )
+    return prescription
+
+
+def list_prescriptions(
+    *, session: Session, patient_id: int | None = None, limit: int = 100, offset: int = 0
+) -> list[Prescription]:
+    query = select(Prescription).order_by(Prescription.id).limit(limit).offset(offset)
+    if patient_id is not None:
+        query = query.where(Prescription.patient_id == patient_id)
+    return list(session.scalars(query))

@@ -1,0 +1,235 @@
+"""`WorkerClient`: the service's handle on one robot's real-time worker process.
+
+It creates the shared memory (control flags, latest-state seqlock, telemetry and event rings) and the
+command and reply pipes, spawns the worker, and keeps a background thread sending heartbeats. The
+emergency stop is written straight into shared memory, where the worker looks every tick, so it never
+waits behind a command, a reply or a busy service; it is also sent down the pipe as a second path.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import multiprocessing
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, validate_control_rate
+from server.realtime.prescription import PrescriptionError, PrescriptionRejected
+from server.realtime.shm import ControlBlock, Seqlock, SharedRing
+from server.realtime.supervisor import SupervisorConfig
+from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict
+from server.realtime.worker import BACKENDS, WorkerConfig, worker_entry
+
+HEARTBEAT_PERIOD_S = 0.02  # five heartbeats per 100 ms watchdog window
+TELEMETRY_CAPACITY = 1 << 15  # 32 s at 1 kHz between drains
+EVENTS_CAPACITY = 1 << 10
+
+
+class WorkerError(RuntimeError):
+    """The worker could not be started, died, or did not answer."""
+
+
+class CommandRefused(RuntimeError):  # noqa: N818 — a refusal, not a malfunction
+    """The worker refused a command (wrong state, bad request); the message says why."""
+
+
+class WorkerClient:
+    def __init__(
+        self,
+        twin_path_or_none: str | None,
+        backend: str,
+        control_rate_hz: int = DEFAULT_CONTROL_RATE_HZ,
+        *,
+        supervisor_config: SupervisorConfig | None = None,
+        cpu: int | None = None,
+        hal_options: dict[str, Any] | None = None,
+        heartbeat_period_s: float = HEARTBEAT_PERIOD_S,
+    ) -> None:
+        if backend not in BACKENDS:
+            raise ValueError(f"backend = {backend!r}: must be one of {list(BACKENDS)}")
+        self.twin_path = twin_path_or_none
+        self.backend = backend
+        self.control_rate_hz = validate_control_rate(control_rate_hz)
+        self.supervisor_config = supervisor_config or SupervisorConfig()
+        self.cpu = cpu
+        self.hal_options = hal_options or {}
+        self.heartbeat_period_s = heartbeat_period_s
+        self.process: multiprocessing.process.BaseProcess | None = None
+        self._ids = itertools.count(1)
+        self._send_lock = threading.Lock()
+        self._reply_lock = threading.Lock()
+        self._stop_heartbeat = threading.Event()
+        self._heartbeat_thread: threading.Thread | None = None
+
+    # --- lifecycle --------------------------------------------------------------------------------
+
+    def start(self, timeout_s: float = 60.0) -> None:
+        """Spawn the worker and wait until its loop runs."""
+        if self.process is not None:
+            raise WorkerError("start: the worker is already started")
+        self.control = ControlBlock()
+        self.state = Seqlock(TELEMETRY_DTYPE)
+        self.telemetry = SharedRing(TELEMETRY_DTYPE, TELEMETRY_CAPACITY)
+        self.events = SharedRing(EVENT_DTYPE, EVENTS_CAPACITY)
+        context = multiprocessing.get_context("spawn")
+        command_reader, self._commands = context.Pipe(duplex=False)
+        self._replies, reply_writer = context.Pipe(duplex=False)
+        config = WorkerConfig(
+            twin_path=self.twin_path,
+            backend=self.backend,
+            control_rate_hz=self.control_rate_hz,
+            supervisor=self.supervisor_config.to_dict(),
+            control_name=self.control.name,
+            state_name=self.state.name,
+            telemetry_name=self.telemetry.name,
+            telemetry_capacity=TELEMETRY_CAPACITY,
+            events_name=self.events.name,
+            events_capacity=EVENTS_CAPACITY,
+            cpu=self.cpu,
+            hal_options=self.hal_options,
+        )
+        self.process = context.Process(
+            target=worker_entry, args=(config, command_reader, reply_writer), name="ssp-rehab-realtime"
+        )
+        self.process.start()
+        command_reader.close()
+        reply_writer.close()
+        self._heartbeat_thread = threading.Thread(target=self._send_heartbeats, name="worker-heartbeat", daemon=True)
+        self._heartbeat_thread.start()
+        deadline = time.monotonic() + timeout_s
+        while not int(self.control.fields["worker_ready"][0]):
+            if not self.process.is_alive():
+                raise WorkerError(f"the worker exited during start-up (exit code {self.process.exitcode})")
+            if time.monotonic() > deadline:
+                raise WorkerError(f"the worker did not start within {timeout_s} s")
+            time.sleep(0.01)
+
+    @property
+    def worker_pid(self) -> int:
+        return int(self.control.fields["worker_pid"][0])
+
+    def shutdown(self, timeout_s: float = 30.0) -> None:
+        """Ask the worker to stop (it brings any motion to a controlled stop first), then free everything."""
+        if self.process is None:
+            return
+        if self.process.is_alive():
+            with contextlib.suppress(WorkerError):
+                self._send("shutdown", None, expect_reply=False)
+            self.process.join(timeout_s)
+            if self.process.is_alive():
+                self.process.terminate()
+                self.process.join(5.0)
+        self._stop_heartbeat.set()
+        if self._heartbeat_thread is not None:
+            self._heartbeat_thread.join(1.0)
+        self._commands.close()
+        self._replies.close()
+        for block in (self.control, self.state, self.telemetry, self.events):
+            block.close()
+        self.process = None
+
+    def __enter__(self) -> WorkerClient:
+        self.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.shutdown()
+
+    # --- commands ---------------------------------------------------------------------------------
+
+    def load_prescription(self, prescription: dict[str, Any], patient: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Check the prescription offline in the worker and load it; raises `PrescriptionRejected`
+        (segment, time, limit) or `PrescriptionError` (field, value, rule). Returns the check report."""
+        result: dict[str, Any] = self._send("load", {"prescription": prescription, "patient": patient}, timeout_s=300.0)
+        return result
+
+    def start_motion(self) -> None:
+        self._send("start")
+
+    def pause(self) -> None:
+        self._send("pause")
+
+    def resume(self) -> None:
+        self._send("resume")
+
+    def stop(self) -> None:
+        self._send("stop")
+
+    def reset(self) -> None:
+        self._send("reset")
+
+    def emergency_stop(self) -> None:
+        """Latch an emergency stop: the shared-memory flag first (read every tick), the pipe second."""
+        self.control.request_estop(time.perf_counter_ns())
+        with contextlib.suppress(WorkerError):  # the flag is the primary path
+            self._send("estop", None, expect_reply=False)
+
+    # --- state and streams ------------------------------------------------------------------------
+
+    def latest_state(self) -> dict[str, Any]:
+        return state_dict(self.state.read()[0])
+
+    def drain_telemetry(self) -> np.ndarray:
+        return self.telemetry.drain()
+
+    def drain_events(self) -> list[dict[str, Any]]:
+        return decode_events(self.events.drain())
+
+    @property
+    def telemetry_lost(self) -> int:
+        return self.telemetry.lost
+
+    # --- plumbing ---------------------------------------------------------------------------------
+
+    def _send(self, name: str, payload: Any = None, *, expect_reply: bool = True, timeout_s: float = 5.0) -> Any:
+        if self.process is None:
+            raise WorkerError(f"{name}: the worker is not started")
+        request_id = next(self._ids)
+        with self._reply_lock:
+            try:
+                with self._send_lock:
+                    self._commands.send((request_id, name, payload))
+            except (OSError, EOFError) as error:
+                raise WorkerError(f"{name}: the worker is gone ({error})") from error
+            if not expect_reply:
+                return None
+            return self._await_reply(name, request_id, timeout_s)
+
+    def _await_reply(self, name: str, request_id: int, timeout_s: float) -> Any:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self._replies.poll(remaining):
+                raise WorkerError(f"{name}: no reply from the worker within {timeout_s} s")
+            try:
+                reply_id, ok, result = self._replies.recv()
+            except (OSError, EOFError) as error:
+                raise WorkerError(f"{name}: the worker is gone ({error})") from error
+            if reply_id != request_id:
+                continue  # a late reply to a request that timed out
+            if ok:
+                return result
+            raise _error_from_reply(result)
+
+    def _send_heartbeats(self) -> None:
+        while not self._stop_heartbeat.wait(self.heartbeat_period_s):
+            try:
+                with self._send_lock:
+                    self._commands.send((0, "heartbeat", None))
+            except (OSError, EOFError, ValueError):
+                return
+
+
+def _error_from_reply(result: dict[str, Any]) -> Exception:
+    kind = result.get("type")
+    if kind == "PrescriptionRejected":
+        return PrescriptionRejected(
+            result["segment"], result["time_s"], result["limit"], result["value"], result["message"]
+        )
+    if kind == "PrescriptionError":
+        return PrescriptionError(result["field"], result["value"], result["limit"])
+    return CommandRefused(f"{kind}: {result.get('message', result)}")

@@ -1,0 +1,85 @@
+"""The limits a session runs under: the robot description's, optionally tightened by the prescription.
+
+A prescription may only tighten a limit; loosening one, or naming one that does not exist, is refused
+with the field, the value and the limit. The per-tick check (`twin_kernels`) and the offline check
+(`prescription`) both read `SessionLimits`, so the two can never disagree on a number.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from core.robot import MotionLimits, TwinRobot
+
+
+class LimitOverrideError(ValueError):
+    def __init__(self, field_name: str, value: object, limit: str) -> None:
+        self.field, self.value, self.limit = field_name, value, limit
+        super().__init__(f"{field_name} = {value!r}: {limit}")
+
+
+@dataclass(frozen=True)
+class SessionLimits:
+    motion: MotionLimits
+    stroke_min_m: np.ndarray  # (12,) right sliders 1–6, then left 1–6
+    stroke_max_m: np.ndarray
+
+    @classmethod
+    def for_twin(
+        cls, twin: TwinRobot, overrides: Mapping[str, Any] | None = None, prefix: str = "limits"
+    ) -> SessionLimits:
+        robots = [twin.robot_for(side) for side in twin.sides]
+        motion = tighten(robots[0].limits, overrides or {}, prefix)
+        return cls(
+            motion=motion,
+            stroke_min_m=np.concatenate([r.stroke_min_m for r in robots]),
+            stroke_max_m=np.concatenate([r.stroke_max_m for r in robots]),
+        )
+
+    def with_margin(self, fraction: float, stroke_margin_m: float) -> SessionLimits:
+        """Limits for normal motion: every bound pulled in by `fraction`, the strokes by `stroke_margin_m`."""
+        scaled = {name: value * (1.0 - fraction) for name, value in asdict(self.motion).items()}
+        return SessionLimits(
+            motion=replace(self.motion, **scaled),
+            stroke_min_m=self.stroke_min_m + stroke_margin_m,
+            stroke_max_m=self.stroke_max_m - stroke_margin_m,
+        )
+
+    def kernel_vector(self) -> np.ndarray:
+        """The (6,) limits vector `twin_command_kernel` reads."""
+        m = self.motion
+        return np.array(
+            [
+                m.base_joint_cone_rad,
+                m.platform_joint_cone_rad,
+                m.tilt_max_rad,
+                m.slider_velocity_max_m_s,
+                m.slider_acceleration_max_m_s2,
+                m.drive_force_max_n,
+            ]
+        )
+
+
+def tighten(limits: MotionLimits, overrides: Mapping[str, Any], prefix: str = "limits") -> MotionLimits:
+    """`limits` with each override applied; an override must be a positive number no larger than the
+    robot's own limit."""
+    if not isinstance(overrides, Mapping):
+        raise LimitOverrideError(prefix, overrides, "must be an object of limit overrides")
+    robot_limits = asdict(limits)
+    changes: dict[str, float] = {}
+    for name, value in overrides.items():
+        if name not in robot_limits:
+            raise LimitOverrideError(f"{prefix}.{name}", value, f"unknown limit; known: {sorted(robot_limits)}")
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
+            raise LimitOverrideError(f"{prefix}.{name}", value, "must be a finite number > 0")
+        if value > robot_limits[name]:
+            raise LimitOverrideError(
+                f"{prefix}.{name}", value, f"may only tighten the robot's limit of {robot_limits[name]:g}"
+            )
+        changes[name] = float(value)
+    return replace(limits, **changes)

@@ -1,0 +1,543 @@
+"""One control tick of the twin (issue 5 §2), played in the phases the supervisor decides.
+
+    cue generator × gain → streaming washout → command shaping → IK of both robots → limits (stroke,
+    rod reach, joint cones, tilt, slider velocity and acceleration, predicted drive force from the
+    inverse dynamics) → HAL write → HAL read → FK monitoring (tracking error) → fall detectors → telemetry
+
+Outside the CUE phase the stance pose comes from a bounded-jerk ramp (`ramps`). A limit hit does not
+raise: the command is not sent, the supervisor starts a controlled stop from the last command sent, and
+that stop's first set-point goes out in the same tick. If even a stop ramp would break a limit the
+drives quick-stop (FAULT; ESTOP if it was the emergency stop's ramp). Every exception inside a tick is
+caught and turned into a fault with an event; the loop itself never dies.
+
+Everything a segment needs (cue generator, washout, shaper, dynamics, fall monitor) is built when the
+prescription is loaded, with the drives off; a tick only resets and steps preallocated objects.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from core.cues import CueGenerator, cue_from_spec
+from core.dynamics import TwinInverseDynamics
+from core.falls import FallMonitor
+from core.kinematics import ForwardKinematicsError
+from core.robot import TwinRobot
+from core.shaping import CommandShaper
+from core.washout import StreamingWashout
+from server.hal.base import (
+    AXIS_COUNT,
+    CommandRejectedError,
+    HalCommand,
+    HalError,
+    HalReading,
+    HalState,
+    HardwareInterface,
+)
+from server.realtime.limits import SessionLimits
+from server.realtime.loop import LATE_THRESHOLD_NS
+from server.realtime.prescription import PrescriptionPlan, SegmentPlan
+from server.realtime.ramps import PoseRamp, cue_gain, return_duration_s, smoothstep5, start_velocity
+from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, TransitionRefused
+from server.realtime.telemetry import (
+    HAL_STATE_CODES,
+    LIMIT_UNITS,
+    TELEMETRY_DTYPE,
+    LimitCode,
+    StopReason,
+    SupervisorState,
+)
+from server.realtime.twin_kernels import VIOLATION_FIELDS, TwinKernels
+
+EventEmitter = Callable[[str, dict[str, Any], "str | None"], None]
+
+
+class _SegmentRuntime:
+    """A segment's streaming objects, built at load time."""
+
+    def __init__(self, plan: SegmentPlan, sample_period_s: float) -> None:
+        self.plan = plan
+        self.cue: CueGenerator = cue_from_spec(plan.cue_spec, sample_period_s, plan.seed)
+        self.washout = StreamingWashout(plan.washout, sample_period_s)
+        self.shaper = CommandShaper(plan.shaping, sample_period_s)
+        self.limits_vector = plan.limits.kernel_vector()
+
+    def restart(self) -> None:
+        self.washout.reset()
+        self.shaper.reset()
+
+
+class TickPipeline:
+    """The worker's tick: owns the supervisor, the motion state and the telemetry record."""
+
+    def __init__(
+        self,
+        twin: TwinRobot,
+        hal: HardwareInterface,
+        control_rate_hz: int,
+        config: SupervisorConfig,
+        emit: EventEmitter,
+    ) -> None:
+        self.twin, self.hal, self.config = twin, hal, config
+        self.control_rate_hz = control_rate_hz
+        self.period_s = 1.0 / control_rate_hz
+        self._emit = emit
+        self.supervisor = Supervisor(config, self._supervisor_event)
+        self.kernels = TwinKernels(twin, self.period_s)
+        self.neutral_sliders = self.kernels.neutral_sliders()
+        self.default_limits = SessionLimits.for_twin(twin)  # the robot's own: what braking is held to
+        self.plan: PrescriptionPlan | None = None
+        self.segments: list[_SegmentRuntime] = []
+        self.dynamics = TwinInverseDynamics(twin)
+        self.fall_monitor: FallMonitor | None = None
+        # Motion state: the last stance command sent and its finite-difference derivatives.
+        # The telemetry record is the working memory: HAL readings, commands and poses are views into
+        # it, so publishing a tick copies no arrays.
+        self.record = np.zeros(1, TELEMETRY_DTYPE)
+        view = self._record_view
+        self.pose = view("stance_pose")
+        self.velocity = np.zeros(6)
+        self.acceleration = np.zeros(6)
+        self._candidate = np.zeros(6)
+        self._candidate_velocity = np.zeros(6)
+        self._candidate_acceleration = np.zeros(6)
+        self.previous_sliders = self.neutral_sliders.copy()
+        self.previous_slider_velocity = np.zeros(AXIS_COUNT)
+        self._sliders = np.zeros(AXIS_COUNT)
+        self._slider_velocity = np.zeros(AXIS_COUNT)
+        self._slider_acceleration = np.zeros(AXIS_COUNT)
+        self._violation = np.zeros(VIOLATION_FIELDS)
+        self._tracking = np.zeros(AXIS_COUNT)
+        self._zero3 = np.zeros(3)
+        self._scaled_force = np.zeros(3)
+        self._scaled_angular = np.zeros(3)
+        self._predicted_force = np.zeros(AXIS_COUNT)
+        self._cue_force, self._cue_angular = view("cue_specific_force_m_s2"), view("cue_angular_velocity_rad_s")
+        self.ramp = PoseRamp()
+        self._ramp_start_velocity = np.zeros(6)
+        self.command = HalCommand(
+            positions_m=view("slider_command_m"),
+            velocity_feedforward_m_s=np.zeros(AXIS_COUNT),
+            force_feedforward_n=view("predicted_force_n"),
+        )
+        self.reading = HalReading(
+            positions_m=view("slider_position_m"),
+            velocities_m_s=view("slider_velocity_m_s"),
+            drive_forces_n=view("drive_force_n"),
+            drive_states=view("drive_state"),
+            plate_force_z_n=view("plate_force_z_n"),
+            plate_cop_m=view("plate_cop_m"),
+        )
+        self.measured_stance = view("measured_stance_pose")
+        self.segment_index = -1
+        self.segment_tick = 0
+        self.resume_tick: int | None = None
+        self.phase_time_s = 0.0
+        self.tick_index = -1
+        self.start_ns = time.perf_counter_ns()
+        self.deadline_misses = 0
+        self.limit_hits = 0
+        self.last_limit = LimitCode.NONE
+        self.tracking_error_m = 0.0
+        self.fk_iterations = 0
+        self.wrote_this_tick = False
+        self._estop_request_ns: int | None = None
+        self.estop_latency_ms: float | None = None
+        self._limits_vector = self.default_limits.kernel_vector()
+        self._stroke_min, self._stroke_max = self.default_limits.stroke_min_m, self.default_limits.stroke_max_m
+
+    # --- commands (from the worker's command channel) ---------------------------------------------
+
+    def load(self, plan: PrescriptionPlan) -> None:
+        """Take a checked plan: build every segment's streaming objects now, with the drives off."""
+        self.supervisor.require("load", SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
+        segments = [_SegmentRuntime(segment, self.period_s) for segment in plan.segments]
+        payload = plan.patient.payload() if plan.patient else None
+        self.dynamics = TwinInverseDynamics(self.twin, payload)
+        self.fall_monitor = FallMonitor(plan.patient.fall_detectors, self.period_s) if plan.patient else None
+        attach = getattr(self.hal, "attach_patient", None)
+        if attach is not None:
+            attach(plan.patient)
+        self.plan, self.segments = plan, segments
+        self.supervisor.load()
+        self._emit("prescription_loaded", {"segments": len(segments), "patient": plan.patient is not None}, None)
+
+    def start(self) -> None:
+        self.supervisor.require("start", SupervisorState.READY)
+        if self.hal.state is not HalState.CONFIGURED:
+            raise TransitionRefused("start", self.supervisor.state, f"HAL is {self.hal.state.value}")
+        self.segment_index, self.segment_tick, self.resume_tick = 0, 0, None
+        for segment in self.segments:
+            segment.cue.reset()
+            segment.restart()
+        if self.fall_monitor is not None:
+            self.fall_monitor.reset()
+        self.supervisor.start()
+
+    def pause(self) -> None:
+        self.supervisor.pause()
+
+    def resume(self) -> None:
+        self.supervisor.resume()
+        self.resume_tick = self.segment_tick
+        self.segments[self.segment_index].restart()
+
+    def stop(self) -> None:
+        self.supervisor.stop()
+
+    def emergency_stop(self, request_ns: int | None = None) -> None:
+        if self.supervisor.state is SupervisorState.ESTOP:
+            return
+        self._estop_request_ns = request_ns if request_ns is not None else time.perf_counter_ns()
+        self.supervisor.emergency_stop({})
+        self._enter_phase()
+
+    def reset(self) -> None:
+        self.supervisor.reset()
+        if self.hal.state is HalState.ESTOP:
+            self.hal.reset_estop()
+        elif self.hal.state is HalState.FAULT:
+            self.hal.reset_fault()
+        self.plan, self.segments = None, []
+        self.estop_latency_ms = None
+
+    def heartbeat(self) -> None:
+        self.supervisor.heartbeat()
+
+    def service_lost(self) -> None:
+        """The command channel closed: nobody is watching, stop now rather than wait for the watchdog."""
+        self.supervisor.controlled_stop(StopReason.SERVICE_LOST, {})
+
+    # --- the tick ---------------------------------------------------------------------------------
+
+    def tick(self, lateness_ns: int) -> None:
+        """One control period. Never raises: errors become a fault and an event."""
+        self.tick_index += 1
+        self.wrote_this_tick = False
+        late = lateness_ns > LATE_THRESHOLD_NS
+        if late:
+            self.deadline_misses += 1
+        self.supervisor.advance_watchdog(self.period_s)
+        self.supervisor.tick_lateness(late)
+        try:
+            if self.supervisor.phase_changed:
+                self._enter_phase()
+            if self.supervisor.drives_enabled:
+                self._command_motion()
+            if self.supervisor.drives_enabled:
+                self._write()
+            if self.supervisor.phase_changed and not self.supervisor.drives_enabled:
+                self._enter_phase()  # the last set-point is out: drives off in this same tick
+            self._read()
+            self._monitor()
+        except Exception as error:  # the loop must survive anything: fault and report
+            self._fault(
+                StopReason.INTERNAL_ERROR, {"error": repr(error), "where": traceback.format_exc(limit=3)[-300:]}
+            )
+        self._fill_record(lateness_ns)
+
+    def _command_motion(self) -> None:
+        self._next_pose()
+        self._solve_limits()
+        if self._violation[0] == 0:
+            self._commit()
+            return
+        self._limit_hit()
+        if self.supervisor.drives_enabled:
+            self._enter_phase()
+            self._next_pose()
+            self._solve_limits()
+            if self._violation[0] == 0:
+                self._commit()
+                return
+            # Even the stop ramp breaks a limit: the drives must stop by themselves.
+            self._escalate("stop ramp", self._violation_details())
+
+    def _next_pose(self) -> None:
+        """The candidate stance pose of this tick from the current phase (may move to the next phase)."""
+        phase = self.supervisor.phase
+        if phase is Phase.CUE:
+            self._cue_pose()
+            return
+        self.phase_time_s += self.period_s
+        finished = self.ramp.evaluate(self.phase_time_s)
+        self._candidate[:] = self.ramp.position
+        ramp_over = phase in (Phase.APPROACH, Phase.RETURN, Phase.DECELERATE) and finished
+        hold_over = phase is Phase.HOLD and self.phase_time_s >= self.config.pause_hold_s
+        if ramp_over or hold_over:
+            self._phase_done()
+
+    def _phase_done(self) -> None:
+        if self.supervisor.state is SupervisorState.RUNNING and self.supervisor.phase is Phase.RETURN:
+            self.segment_index += 1  # the return between two segments is over
+            self.segment_tick, self.resume_tick = 0, None
+        self.supervisor.phase_finished()
+
+    def _cue_pose(self) -> None:
+        segment = self.segments[self.segment_index]
+        plan = segment.plan
+        force, angular = segment.cue.step()
+        time_s = self.segment_tick * self.period_s
+        gain = cue_gain(time_s, plan.duration_s, self.config.soft_start_s, self.config.fade_out_s)
+        if self.resume_tick is not None:
+            gain = min(
+                gain, smoothstep5((self.segment_tick - self.resume_tick) * self.period_s / self.config.soft_start_s)
+            )
+        self._cue_force[:] = force
+        self._cue_angular[:] = angular
+        np.multiply(force, gain, out=self._scaled_force)
+        np.multiply(angular, gain, out=self._scaled_angular)
+        washed = segment.washout.step(self._scaled_force, self._scaled_angular)
+        self._candidate[:] = segment.shaper.step(washed[:6])
+        self.segment_tick += 1
+        if self.segment_tick >= plan.cue_samples:
+            self.supervisor.segment_finished(last=self.segment_index == len(self.segments) - 1)
+
+    def _solve_limits(self) -> None:
+        """IK of both robots and every limit on the candidate pose; fills `_violation`."""
+        np.subtract(self._candidate, self.pose, out=self._candidate_velocity)
+        self._candidate_velocity /= self.period_s
+        np.subtract(self._candidate_velocity, self.velocity, out=self._candidate_acceleration)
+        self._candidate_acceleration /= self.period_s
+        self.kernels.command(
+            self._candidate,
+            self.previous_sliders,
+            self.previous_slider_velocity,
+            self._stroke_min,
+            self._stroke_max,
+            self._limits_vector,
+            self._sliders,
+            self._slider_velocity,
+            self._slider_acceleration,
+            self._violation,
+        )
+        if self._violation[0] != 0:
+            return
+        forces = self.dynamics.step(self._candidate, self._candidate_velocity, self._candidate_acceleration)
+        self._predicted_force[:] = forces
+        force_max = self._limits_vector[5]
+        peak_axis = int(np.argmax(np.abs(forces)))
+        if abs(forces[peak_axis]) > force_max:
+            self._violation[:] = (LimitCode.DRIVE_FORCE, peak_axis, forces[peak_axis], force_max)
+
+    def _commit(self) -> None:
+        self.pose[:] = self._candidate
+        self.velocity[:] = self._candidate_velocity
+        self.acceleration[:] = self._candidate_acceleration
+        self.command.positions_m[:] = self._sliders
+        self.command.velocity_feedforward_m_s[:] = self._slider_velocity
+        self.command.force_feedforward_n[:] = self._predicted_force
+        self.previous_sliders[:] = self._sliders
+        self.previous_slider_velocity[:] = self._slider_velocity
+
+    def _violation_details(self) -> dict[str, Any]:
+        code = LimitCode(int(self._violation[0]))
+        axis = int(self._violation[1])
+        return {
+            "limit": code.label,
+            "axis": None if axis < 0 else self.hal.axis_name(axis),
+            "value": float(self._violation[2]),
+            "limit_value": float(self._violation[3]),
+            "unit": LIMIT_UNITS[code],
+            "segment": self.segment_index,
+            "segment_time_s": round(self.segment_tick * self.period_s, 4),
+        }
+
+    def _limit_hit(self) -> None:
+        self.limit_hits += 1
+        self.last_limit = LimitCode(int(self._violation[0]))
+        details = self._violation_details()
+        self._emit("limit_hit", details, None)
+        state = self.supervisor.state
+        if state in (SupervisorState.RUNNING, SupervisorState.PAUSED):
+            self.supervisor.controlled_stop(StopReason.LIMIT, details)
+        else:
+            self._escalate(state.label, details)
+
+    def _escalate(self, context: str, details: dict[str, Any]) -> None:
+        """The motion cannot be kept within limits: quick stop in the drives."""
+        if self.supervisor.state is SupervisorState.ESTOP:
+            self.supervisor.phase_finished()  # straight to drives off
+            self._enter_phase()
+        else:
+            self._fault(StopReason.LIMIT, {"context": context, **details})
+
+    # --- phases -----------------------------------------------------------------------------------
+
+    def _enter_phase(self) -> None:
+        """Set up the phase the supervisor just entered (ramps start from the last command sent)."""
+        supervisor, config = self.supervisor, self.config
+        supervisor.phase_changed = False
+        phase, state = supervisor.phase, supervisor.state
+        self.phase_time_s = 0.0
+        if phase is Phase.DISABLED:
+            self._drives_off(state)
+            return
+        if phase is Phase.APPROACH:
+            self._activate_drives()
+            self.ramp.to_pose(self.pose, self.velocity, self.acceleration, np.zeros(6), self._return_duration())
+        elif phase is Phase.CUE:
+            self._use_limits(self.segments[self.segment_index].plan.motion_limits)
+        elif phase is Phase.RETURN:
+            self.ramp.to_pose(self.pose, self._ramp_velocity(), self.acceleration, np.zeros(6), self._return_duration())
+        elif phase is Phase.DECELERATE:
+            # Braking may use the margin normal motion keeps: it is checked against the robot's own limits.
+            self._use_limits(self.default_limits)
+            duration = config.estop_ramp_s if state is SupervisorState.ESTOP else config.controlled_stop_s
+            self.ramp.to_standstill(self.pose, self._ramp_velocity(), self.acceleration, duration)
+        else:  # HOLD, PARKED
+            self.ramp.hold(self.pose)
+
+    def _ramp_velocity(self) -> np.ndarray:
+        return start_velocity(self.velocity, self.acceleration, self.period_s, self._ramp_start_velocity)
+
+    def _return_duration(self) -> float:
+        c = self.config
+        return return_duration_s(
+            self.pose,
+            self._ramp_velocity(),
+            minimum_s=c.return_min_s,
+            speed_m_s=c.return_speed_m_s,
+            rate_rad_s=c.return_rate_rad_s,
+            acceleration_m_s2=c.return_acceleration_m_s2,
+            angular_acceleration_rad_s2=c.return_angular_acceleration_rad_s2,
+        )
+
+    def _use_limits(self, limits: SessionLimits) -> None:
+        self._limits_vector = limits.kernel_vector()
+        self._stroke_min, self._stroke_max = limits.stroke_min_m, limits.stroke_max_m
+
+    def _activate_drives(self) -> None:
+        """Drives on; the motion state starts from where the platform actually is (FK of the sliders)."""
+        self.hal.activate()
+        self.hal.read(self.reading)
+        self.previous_sliders[:] = self.reading.positions_m
+        self.previous_slider_velocity[:] = 0.0
+        self.kernels.measured_stance_pose(self.reading.positions_m[:6], self.measured_stance)
+        self.pose[:] = self.measured_stance
+        self.velocity[:] = 0.0
+        self.acceleration[:] = 0.0
+        self._use_limits(self.plan.segments[0].motion_limits if self.plan else self.default_limits)
+
+    def _drives_off(self, state: SupervisorState) -> None:
+        hal = self.hal
+        if state is SupervisorState.ESTOP:
+            if hal.state is not HalState.ESTOP:
+                hal.emergency_stop()
+                self._note_estop_action("drives disabled")
+            self._emit("drives_disabled", {"reason": "emergency_stop"}, None)
+        elif state is SupervisorState.FAULT:
+            if hal.state is not HalState.FAULT:
+                hal.fault(f"supervisor: {self.supervisor.stop_reason.name.lower()}")
+        elif hal.state is HalState.ACTIVE:
+            hal.deactivate()
+            self._emit("drives_disabled", {"reason": self.supervisor.stop_reason.name.lower()}, None)
+        self.velocity[:] = 0.0
+        self.acceleration[:] = 0.0
+
+    # --- I/O and monitoring -----------------------------------------------------------------------
+
+    def _write(self) -> None:
+        try:
+            self.hal.write(self.command)
+        except (CommandRejectedError, HalError) as error:
+            self._fault(StopReason.HAL_FAULT, {"error": str(error)})
+            return
+        self.wrote_this_tick = True
+        if self._estop_request_ns is not None and self.supervisor.state is SupervisorState.ESTOP:
+            self._note_estop_action("first stop set-point")
+
+    def _note_estop_action(self, action: str) -> None:
+        if self._estop_request_ns is None:
+            return
+        reached_ns = time.perf_counter_ns()  # CLOCK_MONOTONIC: comparable with the requester's clock
+        latency_ms = (reached_ns - self._estop_request_ns) * 1e-6
+        self._estop_request_ns = None
+        self.estop_latency_ms = latency_ms
+        self._emit(
+            "estop_reached_hal", {"action": action, "latency_ms": round(latency_ms, 4), "hal_ns": reached_ns}, None
+        )
+
+    def _read(self) -> None:
+        if self.hal.state is HalState.UNCONFIGURED:
+            return
+        self.hal.read(self.reading)
+        if self.hal.state is HalState.FAULT and self.supervisor.state not in (
+            SupervisorState.FAULT,
+            SupervisorState.ESTOP,
+        ):
+            self.supervisor.fault(StopReason.HAL_FAULT, {"hal_fault": self.hal.last_fault})
+            self._enter_phase()
+
+    def _monitor(self) -> None:
+        reading = self.reading
+        if self.wrote_this_tick:
+            np.subtract(self.command.positions_m, reading.positions_m, out=self._tracking)
+            np.abs(self._tracking, out=self._tracking)
+            self.tracking_error_m = float(self._tracking.max())
+            if self.tracking_error_m > self.config.tracking_error_max_m:
+                self.supervisor.controlled_stop(
+                    StopReason.TRACKING_ERROR,
+                    {"tracking_error_m": self.tracking_error_m, "limit_m": self.config.tracking_error_max_m},
+                )
+        try:
+            self.fk_iterations = self.kernels.measured_stance_pose(reading.positions_m[:6], self.measured_stance)
+        except ForwardKinematicsError as error:
+            self.fk_iterations = -1
+            self.supervisor.controlled_stop(StopReason.TRACKING_ERROR, {"forward_kinematics": str(error)})
+        monitor = self.fall_monitor
+        if monitor is not None and self.supervisor.state in (SupervisorState.RUNNING, SupervisorState.PAUSED):
+            events = monitor.step(
+                self.tick_index * self.period_s, reading.plate_force_z_n, reading.plate_cop_m, reading.harness_load_n
+            )
+            for event in events:
+                self._emit(
+                    "fall", {"onset_s": event.onset_s, "detected_s": event.detected_s, **event.values}, event.detector
+                )
+                self.supervisor.controlled_stop(StopReason.FALL, {"detector": event.detector})
+
+    def _fault(self, reason: StopReason, details: dict[str, Any]) -> None:
+        if self.hal.state not in (HalState.FAULT, HalState.ESTOP, HalState.UNCONFIGURED):
+            self.hal.fault(f"{reason.name.lower()}: {details}")
+        self.supervisor.fault(reason, details)
+        self.supervisor.phase_changed = False
+        self.velocity[:] = 0.0
+        self.acceleration[:] = 0.0
+
+    def _supervisor_event(self, kind: str, details: dict[str, Any]) -> None:
+        self._emit(kind, details, None)
+
+    # --- telemetry --------------------------------------------------------------------------------
+
+    def _record_view(self, name: str) -> np.ndarray:
+        return self.record[name][0]
+
+    def _fill_record(self, lateness_ns: int) -> None:
+        record, supervisor = self.record, self.supervisor
+        record["tick"] = self.tick_index
+        record["time_s"] = (time.perf_counter_ns() - self.start_ns) * 1e-9
+        record["utc_s"] = time.time()
+        record["state"] = supervisor.state
+        record["hal_state"] = HAL_STATE_CODES[self.hal.state]
+        record["stop_reason"] = supervisor.stop_reason
+        record["estop_latched"] = supervisor.estop_latched
+        if supervisor.phase is not Phase.CUE:
+            self._cue_force.fill(0.0)
+            self._cue_angular.fill(0.0)
+        playing = supervisor.state in (SupervisorState.RUNNING, SupervisorState.PAUSED)
+        record["segment"] = self.segment_index if playing else -1
+        record["segment_time_s"] = self.segment_tick * self.period_s
+        record["harness_load_n"] = self.reading.harness_load_n
+        record["tracking_error_m"] = self.tracking_error_m
+        record["fk_iterations"] = self.fk_iterations
+        record["lateness_us"] = lateness_ns * 1e-3
+        record["deadline_misses"] = self.deadline_misses
+        record["late_streak"] = supervisor.late_streak
+        record["limit_hits"] = self.limit_hits
+        record["limit_code"] = self.last_limit
+        record["fall_detected"] = self.fall_monitor is not None and self.fall_monitor.fallen

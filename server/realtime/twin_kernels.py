@@ -1,0 +1,337 @@
+"""Per-tick twin kinematics, compiled: stance pose → twelve slider set-points with every limit check,
+and measured sliders → stance pose.
+
+The batch paths (`core.kinematics.twin_inverse_kinematics`, used by the offline prescription check)
+stay the reference; this is the same closed-form IK (REFERENCE.md §1) and the same cone definitions,
+fused into one allocation-free call so that a tick costs microseconds. The tests compare the two.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from core.kinematics import (
+    ForwardKinematicsError,
+    _fk_newton,
+    _neutral_rod_directions,
+    _yaw_matrix,
+    rotation_matrices,
+    stance_origin_world,
+)
+from core.robot import TwinRobot
+from server.realtime.telemetry import LimitCode
+
+# Row layout of the (4,) violation output: code, axis (0..11, −1 for the whole body), value, limit.
+VIOLATION_FIELDS = 4
+
+
+@numba.njit(cache=True)
+def _rotation(roll: float, pitch: float, yaw: float, out: np.ndarray) -> None:
+    ca, sa = math.cos(roll), math.sin(roll)
+    cb, sb = math.cos(pitch), math.sin(pitch)
+    cc, sc = math.cos(yaw), math.sin(yaw)
+    out[0, 0] = cb * cc
+    out[0, 1] = -cb * sc
+    out[0, 2] = sb
+    out[1, 0] = ca * sc + sa * sb * cc
+    out[1, 1] = ca * cc - sa * sb * sc
+    out[1, 2] = -sa * cb
+    out[2, 0] = sa * sc - ca * sb * cc
+    out[2, 1] = sa * cc + ca * sb * sc
+    out[2, 2] = ca * cb
+
+
+@numba.njit(cache=True)
+def _set_violation(violation: np.ndarray, code: int, axis: int, value: float, limit: float) -> None:
+    if violation[0] == 0:  # keep the first one found
+        violation[0] = code
+        violation[1] = axis
+        violation[2] = value
+        violation[3] = limit
+
+
+@numba.njit(cache=True)
+def twin_command_kernel(
+    stance_pose: np.ndarray,  # (6,)
+    period_s: float,
+    previous_sliders: np.ndarray,  # (12,) last commanded
+    previous_velocity: np.ndarray,  # (12,)
+    stance_origin: np.ndarray,  # (3,)
+    base_yaw: np.ndarray,  # (2, 3, 3)
+    base_origin: np.ndarray,  # (2, 3)
+    lever_world: np.ndarray,  # (2, 3)
+    neutral_rotation_world: np.ndarray,  # (2, 3, 3)
+    joints: np.ndarray,  # (2, 6, 3)
+    rail_y: np.ndarray,  # (2, 6)
+    rail_z: float,
+    sides: np.ndarray,  # (2, 6)
+    rod_length: float,
+    stroke_min: np.ndarray,  # (12,)
+    stroke_max: np.ndarray,  # (12,)
+    cone_axes: np.ndarray,  # (2, 6, 3)
+    limits: np.ndarray,  # (6,) base cone, platform cone, tilt, velocity, acceleration, (unused)
+    scratch: np.ndarray,  # (4, 3, 3)
+    sliders_out: np.ndarray,  # (12,)
+    velocity_out: np.ndarray,  # (12,)
+    acceleration_out: np.ndarray,  # (12,)
+    violation: np.ndarray,  # (4,)
+) -> None:
+    violation[:] = 0.0
+    stance_rotation = scratch[0]
+    world_rotation = scratch[1]
+    platform_rotation = scratch[2]
+    _rotation(stance_pose[3], stance_pose[4], stance_pose[5], stance_rotation)
+    tilt = math.acos(min(1.0, max(-1.0, math.cos(stance_pose[3]) * math.cos(stance_pose[4]))))
+    if tilt > limits[2]:
+        _set_violation(violation, 5, -1, tilt, limits[2])
+    for side in range(2):
+        # Platform rotation and position in this robot's base frame (core.kinematics.twin_platform_poses).
+        for i in range(3):
+            for j in range(3):
+                total = 0.0
+                for k in range(3):
+                    total += stance_rotation[i, k] * neutral_rotation_world[side, k, j]
+                world_rotation[i, j] = total
+        for i in range(3):
+            for j in range(3):
+                total = 0.0
+                for k in range(3):
+                    total += base_yaw[side, k, i] * world_rotation[k, j]
+                platform_rotation[i, j] = total
+        # world = o_s + t + R_s·lever − o_b, then p = Yᵀ·world (scalars: no allocation in the tick)
+        world_x = stance_origin[0] + stance_pose[0] - base_origin[side, 0]
+        world_y = stance_origin[1] + stance_pose[1] - base_origin[side, 1]
+        world_z = stance_origin[2] + stance_pose[2] - base_origin[side, 2]
+        for k in range(3):
+            world_x += stance_rotation[0, k] * lever_world[side, k]
+            world_y += stance_rotation[1, k] * lever_world[side, k]
+            world_z += stance_rotation[2, k] * lever_world[side, k]
+        px = base_yaw[side, 0, 0] * world_x + base_yaw[side, 1, 0] * world_y + base_yaw[side, 2, 0] * world_z
+        py = base_yaw[side, 0, 1] * world_x + base_yaw[side, 1, 1] * world_y + base_yaw[side, 2, 1] * world_z
+        pz = base_yaw[side, 0, 2] * world_x + base_yaw[side, 1, 2] * world_y + base_yaw[side, 2, 2] * world_z
+        for leg in range(6):
+            axis = 6 * side + leg
+            bx, by, bz = joints[side, leg, 0], joints[side, leg, 1], joints[side, leg, 2]
+            wx = px + platform_rotation[0, 0] * bx + platform_rotation[0, 1] * by + platform_rotation[0, 2] * bz
+            wy = py + platform_rotation[1, 0] * bx + platform_rotation[1, 1] * by + platform_rotation[1, 2] * bz
+            wz = pz + platform_rotation[2, 0] * bx + platform_rotation[2, 1] * by + platform_rotation[2, 2] * bz
+            dy = wy - rail_y[side, leg]
+            dz = wz - rail_z
+            reach_sq = rod_length * rod_length - dy * dy - dz * dz
+            if reach_sq < 0.0:
+                _set_violation(violation, 1, axis, math.sqrt(dy * dy + dz * dz), rod_length)
+                sliders_out[axis] = previous_sliders[axis]
+                continue
+            along = math.sqrt(reach_sq)
+            slider = wx + sides[side, leg] * along
+            sliders_out[axis] = slider
+            if slider < stroke_min[axis]:
+                _set_violation(violation, 2, axis, slider, stroke_min[axis])
+            elif slider > stroke_max[axis]:
+                _set_violation(violation, 2, axis, slider, stroke_max[axis])
+            # Rod direction d = (−side·along, dy, dz)/L against the neutral axis, at the slider (base
+            # frame) and at the platform (axis carried along by the platform rotation).
+            rx, ry, rz = -sides[side, leg] * along / rod_length, dy / rod_length, dz / rod_length
+            ax, ay, az = cone_axes[side, leg, 0], cone_axes[side, leg, 1], cone_axes[side, leg, 2]
+            base_cone = math.acos(min(1.0, max(-1.0, rx * ax + ry * ay + rz * az)))
+            if base_cone > limits[0]:
+                _set_violation(violation, 3, axis, base_cone, limits[0])
+            qx = platform_rotation[0, 0] * ax + platform_rotation[0, 1] * ay + platform_rotation[0, 2] * az
+            qy = platform_rotation[1, 0] * ax + platform_rotation[1, 1] * ay + platform_rotation[1, 2] * az
+            qz = platform_rotation[2, 0] * ax + platform_rotation[2, 1] * ay + platform_rotation[2, 2] * az
+            platform_cone = math.acos(min(1.0, max(-1.0, rx * qx + ry * qy + rz * qz)))
+            if platform_cone > limits[1]:
+                _set_violation(violation, 4, axis, platform_cone, limits[1])
+    for axis in range(12):
+        velocity = (sliders_out[axis] - previous_sliders[axis]) / period_s
+        acceleration = (velocity - previous_velocity[axis]) / period_s
+        velocity_out[axis] = velocity
+        acceleration_out[axis] = acceleration
+        if abs(velocity) > limits[3]:
+            _set_violation(violation, 6, axis, velocity, limits[3])
+        if abs(acceleration) > limits[4]:
+            _set_violation(violation, 7, axis, acceleration, limits[4])
+
+
+@numba.njit(cache=True)
+def stance_from_platform_kernel(
+    platform_pose: np.ndarray,  # (6,) right robot, its base frame
+    stance_origin: np.ndarray,
+    base_yaw: np.ndarray,  # (3, 3)
+    base_origin: np.ndarray,  # (3,)
+    lever_world: np.ndarray,  # (3,)
+    neutral_rotation_world: np.ndarray,  # (3, 3)
+    scratch: np.ndarray,  # (2, 3, 3)
+    stance_out: np.ndarray,  # (6,)
+) -> None:
+    """Invert the stance → platform map: R_s = Y·R_p·N_wᵀ, t = Y·p + o_b − o_s − R_s·lever."""
+    platform_rotation = scratch[0]
+    stance_rotation = scratch[1]
+    _rotation(platform_pose[3], platform_pose[4], platform_pose[5], platform_rotation)
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                for m in range(3):
+                    total += base_yaw[i, k] * platform_rotation[k, m] * neutral_rotation_world[j, m]
+            stance_rotation[i, j] = total
+    for i in range(3):
+        total = base_origin[i] - stance_origin[i]
+        for k in range(3):
+            total += base_yaw[i, k] * platform_pose[k] - stance_rotation[i, k] * lever_world[k]
+        stance_out[i] = total
+    stance_out[3] = math.atan2(-stance_rotation[1, 2], stance_rotation[2, 2])
+    stance_out[4] = math.asin(min(1.0, max(-1.0, stance_rotation[0, 2])))
+    stance_out[5] = math.atan2(-stance_rotation[0, 1], stance_rotation[0, 0])
+
+
+@numba.njit(cache=True)
+def measured_stance_kernel(
+    sliders: np.ndarray,  # (6,) right robot
+    warm_pose: np.ndarray,  # (6,) last platform pose: Newton's start, updated on success
+    joints: np.ndarray,
+    rail_y: np.ndarray,
+    rail_z: float,
+    sides: np.ndarray,
+    rod_length: float,
+    tolerance: float,
+    max_iterations: int,
+    platform_out: np.ndarray,  # (6,)
+    stance_origin: np.ndarray,
+    base_yaw: np.ndarray,
+    base_origin: np.ndarray,
+    lever_world: np.ndarray,
+    neutral_rotation_world: np.ndarray,
+    scratch: np.ndarray,
+    stance_out: np.ndarray,
+) -> tuple[int, float]:
+    """Newton FK of the right robot (core.kinematics) warm-started from the last pose, then its stance pose."""
+    iterations, residual = _fk_newton(
+        sliders, warm_pose, joints, rail_y, rail_z, sides, rod_length, tolerance, max_iterations, platform_out
+    )
+    if iterations < 0 or not np.isfinite(residual):
+        return iterations, residual
+    warm_pose[:] = platform_out
+    stance_from_platform_kernel(
+        platform_out, stance_origin, base_yaw, base_origin, lever_world, neutral_rotation_world, scratch, stance_out
+    )
+    return iterations, residual
+
+
+class TwinKernels:
+    """The twin's geometry packed for the compiled kernels, plus their preallocated outputs."""
+
+    def __init__(self, twin: TwinRobot, period_s: float) -> None:
+        self.twin, self.period_s = twin, period_s
+        robots = [twin.robot_for(side) for side in twin.sides]
+        self.stance_origin = stance_origin_world(twin)
+        self.base_yaw = np.stack([_yaw_matrix(twin.placement(side).base_yaw_rad) for side in twin.sides])
+        self.base_origin = np.array([twin.placement(side).base_origin_m for side in twin.sides], dtype=float)
+        neutral = np.array([robot.neutral_pose for robot in robots], dtype=float)
+        self.neutral_rotation_world = np.einsum("sij,sjk->sik", self.base_yaw, rotation_matrices(neutral[:, 3:]))
+        self.lever_world = (
+            self.base_origin + np.einsum("sij,sj->si", self.base_yaw, neutral[:, :3]) - self.stance_origin
+        )
+        self.joints = np.stack([robot.platform_joints_m for robot in robots])
+        self.rail_y = np.stack([robot.rail_y_m for robot in robots])
+        self.rail_z = float(robots[0].rail_z_m)
+        self.sides = np.stack([robot.sides for robot in robots])
+        self.rod_length = float(robots[0].rod_length_m)
+        self.cone_axes = np.stack([_neutral_rod_directions(robot) for robot in robots])
+        self._scratch = np.zeros((4, 3, 3))
+        self._right = robots[0]
+        self._fk_warm_pose = np.asarray(robots[0].neutral_pose, dtype=float).copy()
+        self._fk_pose = np.zeros(6)
+
+    def command(
+        self,
+        stance_pose: np.ndarray,
+        previous_sliders: np.ndarray,
+        previous_velocity: np.ndarray,
+        stroke_min: np.ndarray,
+        stroke_max: np.ndarray,
+        limits: np.ndarray,
+        sliders_out: np.ndarray,
+        velocity_out: np.ndarray,
+        acceleration_out: np.ndarray,
+        violation: np.ndarray,
+    ) -> None:
+        """Slider set-points (12) for a stance pose, their finite-difference velocity and acceleration,
+        and the first broken limit in `violation` (code, axis, value, limit; code 0 when none)."""
+        twin_command_kernel(
+            stance_pose,
+            self.period_s,
+            previous_sliders,
+            previous_velocity,
+            self.stance_origin,
+            self.base_yaw,
+            self.base_origin,
+            self.lever_world,
+            self.neutral_rotation_world,
+            self.joints,
+            self.rail_y,
+            self.rail_z,
+            self.sides,
+            self.rod_length,
+            stroke_min,
+            stroke_max,
+            self.cone_axes,
+            limits,
+            self._scratch,
+            sliders_out,
+            velocity_out,
+            acceleration_out,
+            violation,
+        )
+
+    def measured_stance_pose(self, right_sliders_m: np.ndarray, stance_out: np.ndarray) -> int:
+        """Stance pose from the right robot's measured sliders (Newton FK warm-started from the last
+        call); returns the iterations, raises `ForwardKinematicsError` when Newton fails."""
+        iterations, residual = measured_stance_kernel(
+            right_sliders_m,
+            self._fk_warm_pose,
+            self.joints[0],
+            self.rail_y[0],
+            self.rail_z,
+            self.sides[0],
+            self.rod_length,
+            1e-12,
+            20,
+            self._fk_pose,
+            self.stance_origin,
+            self.base_yaw[0],
+            self.base_origin[0],
+            self.lever_world[0],
+            self.neutral_rotation_world[0],
+            self._scratch[:2],
+            stance_out,
+        )
+        if iterations < 0 or not np.isfinite(residual):
+            self._fk_warm_pose[:] = self._right.neutral_pose
+            raise ForwardKinematicsError(abs(iterations), residual)
+        return iterations
+
+    def neutral_sliders(self) -> np.ndarray:
+        """The twelve slider positions at the neutral stance."""
+        sliders, scratch_velocity, scratch_acceleration = np.zeros(12), np.zeros(12), np.zeros(12)
+        violation = np.zeros(VIOLATION_FIELDS)
+        no_limits = np.full(6, np.inf)
+        self.command(
+            np.zeros(6),
+            sliders,
+            sliders,
+            np.full(12, -np.inf),
+            np.full(12, np.inf),
+            no_limits,
+            sliders,
+            scratch_velocity,
+            scratch_acceleration,
+            violation,
+        )
+        return sliders
+
+
+assert LimitCode.TILT == 5 and LimitCode.SLIDER_VELOCITY == 6 and LimitCode.SLIDER_ACCELERATION == 7

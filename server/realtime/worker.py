@@ -1,0 +1,247 @@
+"""The real-time worker process (spawned by `WorkerClient`): it owns the HAL and runs the fixed-rate loop.
+
+Each iteration: wait for the deadline → the emergency-stop flag in shared memory (never queued behind
+anything) → commands from the pipe (a few per tick; the pipe closing means the service is gone) →
+`TickPipeline.tick` → the tick's record into the telemetry ring and behind the seqlock. Replies go back
+on their own pipe; events go into their own shared-memory ring at once.
+
+A prescription is planned and checked offline here, by the worker, because the worker alone decides
+motion; that only happens with the drives off, and the loop's deadline grid restarts afterwards.
+The worker exits on `shutdown` or when the service is gone, but only once the drives are off.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from typing import Any
+
+from core.robot import TwinRobot, default_twin, load_twin
+from server.hal.base import HardwareInterface
+from server.realtime.loop import FixedRateLoop, configure_realtime, freeze_garbage_collector
+from server.realtime.pipeline import TickPipeline
+from server.realtime.prescription import (
+    PrescriptionError,
+    PrescriptionRejected,
+    check_plan,
+    plan_prescription,
+)
+from server.realtime.shm import ControlBlock, Seqlock, SharedRing
+from server.realtime.supervisor import SupervisorConfig, TransitionRefused
+from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, StopReason, SupervisorState, encode_event
+
+BACKENDS = ("kinematic", "sim")
+LOAD_STATES = (SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
+COMMANDS_PER_TICK = 4
+IDLE_COLLECT_PERIOD_S = 10.0
+
+log = logging.getLogger("ssp_rehab.realtime")
+
+
+@dataclass(frozen=True)
+class WorkerConfig:
+    twin_path: str | None
+    backend: str
+    control_rate_hz: int
+    supervisor: dict[str, Any]
+    control_name: str
+    state_name: str
+    telemetry_name: str
+    telemetry_capacity: int
+    events_name: str
+    events_capacity: int
+    cpu: int | None = None
+    hal_options: dict[str, Any] = field(default_factory=dict)
+
+
+def make_hal(backend: str, twin: TwinRobot, control_period_s: float, **options: Any) -> HardwareInterface:
+    """The HAL backend by name; the kinematic one is ideal, the sim one is MuJoCo physics."""
+    if backend == "kinematic":
+        from server.hal.kinematic import KinematicHal
+
+        return KinematicHal(twin, control_period_s, **options)
+    if backend == "sim":
+        from server.hal.sim import SimHal
+
+        return SimHal(twin, control_period_s, **options)
+    raise ValueError(f"backend = {backend!r}: must be one of {list(BACKENDS)}")
+
+
+class Worker:
+    def __init__(self, config: WorkerConfig, commands: Connection, replies: Connection) -> None:
+        self.config = config
+        self.commands, self.replies = commands, replies
+        self.control = ControlBlock(config.control_name)
+        self.state = Seqlock(TELEMETRY_DTYPE, config.state_name)
+        self.telemetry = SharedRing(TELEMETRY_DTYPE, config.telemetry_capacity, config.telemetry_name)
+        self.events = SharedRing(EVENT_DTYPE, config.events_capacity, config.events_name)
+        self.twin = load_twin(config.twin_path) if config.twin_path else default_twin()
+        self.supervisor_config = SupervisorConfig.from_dict(config.supervisor)
+        period = 1.0 / config.control_rate_hz
+        self.hal = make_hal(config.backend, self.twin, period, **config.hal_options)
+        self.hal.configure()
+        self.hal.home()
+        self.pipeline = TickPipeline(self.twin, self.hal, config.control_rate_hz, self.supervisor_config, self.emit)
+        self.loop = FixedRateLoop(config.control_rate_hz)
+        self._estop_seen = int(self.control.fields["estop_requests"][0])
+        self._estop_requests = self.control.fields["estop_requests"]
+        self._estop_times = self.control.fields["estop_request_ns"]
+        self.service_gone = False
+        self.shutdown_requested = False
+        self._next_collect_s = 0.0
+
+    # --- events and replies -----------------------------------------------------------------------
+
+    def emit(self, kind: str, details: dict[str, Any], detector: str | None = None) -> None:
+        slot = self.events.slot()
+        slot["tick"] = self.pipeline.tick_index
+        slot["tick_time_s"] = self.pipeline.record["time_s"][0]
+        slot["utc_s"] = time.time()
+        encode_event(slot, kind, details, detector)
+        self.events.publish()
+
+    def _reply(self, request_id: int, ok: bool, result: Any) -> None:
+        if self.service_gone:
+            return
+        try:
+            self.replies.send((request_id, ok, result))
+        except (OSError, EOFError):
+            self._lose_service()
+
+    # --- commands ---------------------------------------------------------------------------------
+
+    def _poll_commands(self) -> None:
+        for _ in range(COMMANDS_PER_TICK):
+            try:
+                if not self.commands.poll(0):
+                    return
+                message = self.commands.recv()
+            except (EOFError, OSError):
+                self._lose_service()
+                return
+            self._handle(*message)
+
+    def _lose_service(self) -> None:
+        if not self.service_gone:
+            self.service_gone = True
+            self.emit("service_lost", {})
+            self.pipeline.service_lost()
+
+    def _handle(self, request_id: int, name: str, payload: Any) -> None:
+        pipeline = self.pipeline
+        if name == "heartbeat":
+            pipeline.heartbeat()
+            return
+        if name == "estop":
+            pipeline.emergency_stop(payload)
+            return
+        try:
+            result: Any = None
+            if name == "load":
+                result = self._load(payload["prescription"], payload.get("patient"))
+            elif name in ("start", "pause", "resume", "stop", "reset"):
+                getattr(pipeline, name)()
+            elif name == "shutdown":
+                self.shutdown_requested = True
+                pipeline.supervisor.controlled_stop(StopReason.OPERATOR, {})
+            else:
+                raise ValueError(f"command = {name!r}: unknown")
+            self._reply(request_id, True, result)
+        except PrescriptionRejected as rejected:
+            self._reply(request_id, False, {"type": "PrescriptionRejected", **rejected.to_dict()})
+        except PrescriptionError as error:
+            self._reply(
+                request_id,
+                False,
+                {"type": "PrescriptionError", "field": error.field, "value": repr(error.value), "limit": error.limit},
+            )
+        except TransitionRefused as refused:
+            self._reply(request_id, False, {"type": "TransitionRefused", "message": str(refused)})
+        except Exception as error:  # a bad command must never take the loop down
+            self._reply(request_id, False, {"type": type(error).__name__, "message": str(error)})
+
+    def _load(self, prescription: dict[str, Any], patient: dict[str, Any] | None) -> dict[str, Any]:
+        self.pipeline.supervisor.require("load", *LOAD_STATES)
+        plan = plan_prescription(
+            prescription,
+            self.twin,
+            control_rate_hz=self.config.control_rate_hz,
+            config=self.supervisor_config,
+            patient=patient,
+        )
+        try:
+            report = check_plan(plan, self.twin)
+            self.pipeline.load(plan)
+        finally:
+            self.loop.rebase()  # the check took many periods; the drives are off, so nothing was late
+        self.emit("prescription_checked", report.to_dict())
+        return report.to_dict()
+
+    # --- the loop ---------------------------------------------------------------------------------
+
+    def run(self) -> None:
+        setup = configure_realtime(self.config.cpu)
+        for refusal in setup.refusals:
+            log.warning("real-time setup: %s", refusal)
+        self.emit(
+            "worker_started",
+            {
+                "pid": os.getpid(),
+                "backend": self.config.backend,
+                "control_rate_hz": self.config.control_rate_hz,
+                "cpu": setup.cpu,
+                "fifo_priority": setup.fifo_priority,
+                "refusals": setup.refusals,
+            },
+        )
+        freeze_garbage_collector()
+        self.control.fields["worker_pid"] = os.getpid()
+        self.control.fields["worker_ready"] = 1
+        self.loop.rebase()
+        record, pipeline = self.pipeline.record, self.pipeline
+        while True:
+            lateness = self.loop.wait()
+            started = time.perf_counter_ns()
+            requests = int(self._estop_requests[0])
+            if requests != self._estop_seen:
+                self._estop_seen = requests
+                pipeline.emergency_stop(int(self._estop_times[0]))
+            if not self.service_gone:
+                self._poll_commands()
+            pipeline.tick(lateness)
+            record["tick_compute_us"] = (time.perf_counter_ns() - started) * 1e-3
+            self.telemetry.push(record)
+            self.state.write(record)
+            if not pipeline.supervisor.drives_enabled:
+                if self.shutdown_requested or self.service_gone:
+                    break
+                self._collect_when_idle()
+        self.emit("worker_stopped", {"service_gone": self.service_gone})
+        self.hal.shutdown()
+
+    def _collect_when_idle(self) -> None:
+        """With the drives off a collection pause harms nobody; cycles would pile up otherwise."""
+        now = time.monotonic()
+        if now >= self._next_collect_s:
+            self._next_collect_s = now + IDLE_COLLECT_PERIOD_S
+            gc.collect()
+            self.loop.rebase()
+
+    def close(self) -> None:
+        for block in (self.control, self.state, self.telemetry, self.events):
+            block.close()
+
+
+def worker_entry(config: WorkerConfig, commands: Connection, replies: Connection) -> None:
+    """Process entry point (multiprocessing spawn)."""
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(asctime)s worker %(levelname)s %(message)s")
+    worker = Worker(config, commands, replies)
+    try:
+        worker.run()
+    finally:
+        worker.close()

@@ -1,0 +1,143 @@
+"""Reading a run's durable session log back as a `server.exports.SessionLog` (issue 6 §5): the telemetry
+columns, the events with tick and UTC time and their detector, and the metadata sidecar built by
+`server.exports.session_metadata` (patient pseudonymised unless an admin asks otherwise, prescription
+version, washout parameters, geometry, software version)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from core.robot import TwinRobot
+from server.errors import ConflictError, InvalidFieldError
+from server.patients.models import Patient
+from server.prescriptions.models import PrescriptionVersion
+from server.scheduling.models import ScheduledSession
+from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
+from server.sessions.recorder import decode_chunk
+from server.sessions.service import get_run
+
+MAX_RUNS_PER_BUNDLE = 200
+
+
+def telemetry_columns(*, session: Session, run_id: int) -> dict[str, np.ndarray]:
+    chunks = session.scalars(
+        select(TelemetryChunk.data).where(TelemetryChunk.run_id == run_id).order_by(TelemetryChunk.sequence)
+    ).all()
+    if not chunks:
+        raise ConflictError(f"session run {run_id} has no recorded telemetry to export")
+    records = np.concatenate([decode_chunk(data) for data in chunks])
+    return {name: np.ascontiguousarray(records[name]) for name in records.dtype.names or ()}
+
+
+def sample_rate_hz(time_s: np.ndarray) -> float:
+    """The recorded rate: the median tick interval, robust to the odd late tick."""
+    return float(1.0 / np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
+
+
+def clocked_events(
+    events: list[SessionEvent], columns: dict[str, np.ndarray]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Events as the exporters take them, and those that cannot be placed on the tick clock.
+
+    Console commands recorded while the worker's clock was unknown get the tick of the telemetry sample
+    nearest to their UTC time (flagged `tick_from_utc`)."""
+    placed, unplaced = [], []
+    utc_s = columns.get("utc_s")
+    for event in events:
+        record: dict[str, Any] = {
+            "kind": event.kind,
+            "tick": event.tick,
+            "tick_time_s": event.tick_time_s,
+            "utc": event.utc.isoformat(),
+            "detector": event.detector,
+            "details": dict(event.details),
+        }
+        if event.tick is None or event.tick_time_s is None:
+            if utc_s is None or not len(utc_s):
+                unplaced.append(record)
+                continue
+            index = int(np.clip(np.searchsorted(utc_s, event.utc.timestamp()), 0, len(utc_s) - 1))
+            record.update(tick=int(columns["tick"][index]), tick_time_s=float(columns["time_s"][index]))
+            record["details"]["tick_from_utc"] = True
+        placed.append(record)
+    return placed, unplaced
+
+
+def patient_record(patient: Patient) -> dict[str, Any]:
+    """The patient fields an export may carry; free-text notes never leave the record."""
+    return {
+        "identifier": patient.identifier,
+        "name": patient.name,
+        "date_of_birth": patient.date_of_birth.isoformat(),
+        "sex": patient.sex,
+        "height_m": patient.height_m,
+        "body_mass_kg": patient.body_mass_kg,
+        "diagnosis": patient.diagnosis,
+        "affected_side": patient.affected_side,
+    }
+
+
+def session_log(*, session: Session, run_id: int, twin: TwinRobot, salt: bytes, identify: bool) -> Any:
+    """One run's `server.exports.SessionLog`: telemetry columns, events and the metadata sidecar."""
+    from server.exports import SessionLog, session_metadata
+
+    run = get_run(session=session, run_id=run_id)
+    booking = session.get(ScheduledSession, run.scheduled_session_id)
+    version = session.get(PrescriptionVersion, run.prescription_version_id)
+    assert booking is not None and version is not None  # foreign keys guarantee both
+    patient = session.get(Patient, booking.patient_id)
+    assert patient is not None
+    columns = telemetry_columns(session=session, run_id=run.id)
+    stored_events = session.scalars(select(SessionEvent).where(SessionEvent.run_id == run.id).order_by(SessionEvent.id))
+    events, unplaced = clocked_events(list(stored_events), columns)
+    metadata = session_metadata(
+        session_id=f"run-{run.id}",
+        started_utc=run.started_at,
+        sample_rate_hz=sample_rate_hz(columns["time_s"]),
+        patient=patient_record(patient),
+        prescription=version.content,
+        prescription_version=version.version,
+        twin=twin,
+        salt=salt,
+        identified=identify,
+    )
+    metadata["run"] = {
+        "id": run.id,
+        "robot": run.robot,
+        "outcome": run.outcome,
+        "ended_utc": run.ended_at.isoformat() if run.ended_at else None,
+        "prescription_id": version.prescription_id,
+    }
+    if unplaced:
+        metadata["events_without_tick"] = unplaced
+    return SessionLog(columns=columns, events=events, metadata=metadata)
+
+
+def study_run_ids(*, session: Session, start: dt.date, end: dt.date, diagnosis: str | None) -> list[tuple[int, int]]:
+    """(run id, patient id) of the recorded runs started on days start..end (UTC), optionally by diagnosis."""
+    if end < start:
+        raise InvalidFieldError("to_date", str(end), f"must not be before from_date {start}")
+    query = (
+        select(SessionRun.id, ScheduledSession.patient_id)
+        .join(ScheduledSession, ScheduledSession.id == SessionRun.scheduled_session_id)
+        .join(Patient, Patient.id == ScheduledSession.patient_id)
+        .where(
+            SessionRun.started_at >= dt.datetime.combine(start, dt.time(), dt.UTC),
+            SessionRun.started_at < dt.datetime.combine(end + dt.timedelta(days=1), dt.time(), dt.UTC),
+            SessionRun.sample_count > 0,
+        )
+        .order_by(SessionRun.id)
+    )
+    if diagnosis:
+        query = query.where(func.lower(Patient.diagnosis) == diagnosis.lower())
+    rows = [(run_id, patient_id) for run_id, patient_id in session.execute(query).tuples()]
+    if len(rows) > MAX_RUNS_PER_BUNDLE:
+        raise InvalidFieldError(
+            "to_date", str(end), f"{len(rows)} runs match; at most {MAX_RUNS_PER_BUNDLE} per bundle"
+        )
+    return rows

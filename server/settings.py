@@ -1,0 +1,76 @@
+"""Console-service settings (pydantic-settings): environment variables `SSP_REHAB_*` and a `.env` file.
+
+The embedded default needs no setup: a SQLite file in the data directory and the simulator backend.
+A clinic that shares records between consoles points `SSP_REHAB_DATABASE_URL` at PostgreSQL (psycopg 3).
+"""
+
+from __future__ import annotations
+
+import secrets
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+Backend = Literal["sim", "kinematic", "canopen"]
+SECRET_KEY_FILE = "secret_key"
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="SSP_REHAB_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Field(default=Path("data"), description="Holds the SQLite file and the token-signing key.")
+    database_url: str | None = Field(default=None, description="SQLAlchemy URL; default: SQLite file in data_dir.")
+    backend: Backend = Field(default="sim", description="HAL backend the real-time worker drives.")
+    robot_file: Path | None = Field(default=None, description="Robot description TOML; default: the paper's twin.")
+    control_rate_hz: int = Field(default=1000, ge=100, le=4000)
+    start_worker: bool = Field(default=True, description="Start the real-time worker with the service.")
+
+    secret_key: SecretStr | None = Field(
+        default=None, description="Signs access tokens; default: generated in data_dir."
+    )
+    token_lifetime_s: int = Field(default=12 * 3600, ge=60, le=7 * 24 * 3600)
+    cookie_name: str = "ssp_rehab_session"
+    # The embedded default listens on loopback over plain HTTP, where a Secure cookie would never be sent back.
+    cookie_secure: bool = Field(default=False, description="Set the Secure flag; turn on whenever served over HTTPS.")
+    cors_origins: list[str] = Field(default_factory=list, description="Allowed browser origins; empty: CORS closed.")
+
+    login_max_failures: int = Field(
+        default=5, ge=1, description="Failed logins per username or client before a lockout."
+    )
+    login_window_s: float = Field(
+        default=300.0, gt=0, description="Window in which failures count, and lockout length."
+    )
+
+    telemetry_rate_hz: float = Field(default=30.0, gt=0, le=120, description="WebSocket telemetry frame rate.")
+    log_flush_interval_s: float = Field(default=1.0, gt=0, le=60, description="How often telemetry chunks are written.")
+    viz_enabled: bool = Field(default=True, description="Serve the live 3D view (viser) on its own port.")
+    viz_host: str = Field(default="127.0.0.1", description="Interface the 3D view listens on.")
+    viz_port: int = Field(default=8081, ge=1, le=65535, description="Port of the 3D view (embedded by the web app).")
+    viz_rate_hz: float = Field(default=50.0, ge=30.0, le=120.0, description="3D view update rate.")
+    frontend_dir: Path | None = Field(
+        default=None, description="Static clinician app; default: frontend_static/ if present."
+    )
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'ssp-rehab.sqlite3').resolve()}"
+
+    def resolved_secret_key(self) -> bytes:
+        """The configured key, else one generated once and kept (mode 0600) in the data directory."""
+        if self.secret_key is not None:
+            return self.secret_key.get_secret_value().encode()
+        path = self.data_dir / SECRET_KEY_FILE
+        if not path.exists():
+            self.data_dir.mkdir(parents=True, exist_ok=True)
+            path.touch(mode=0o600)
+            path.write_text(secrets.token_urlsafe(48))
+        return path.read_text().strip().encode()
+
+    def resolved_frontend_dir(self) -> Path | None:
+        if self.frontend_dir is not None:
+            return self.frontend_dir
+        bundled = Path(__file__).resolve().parent.parent / "frontend_static"
+        return bundled if (bundled / "index.html").exists() else None

@@ -1,0 +1,1 @@
+"""Clinician accounts (admin, therapist); managed by admins."""

@@ -1,0 +1,228 @@
+"""The 3D view's server: viser on its own port (it is not an ASGI app), fed by a thread at `rate_hz`.
+
+Live mode reads the real-time worker's latest state (the seqlock in shared memory, via
+`WorkerClient.latest_state()`), never the telemetry ring, so watching adds no load to the worker or
+the session recorder. Replay mode plays a finished run's recorded telemetry (stance pose and slider
+positions) in the same scene at its recorded speed. The view shows the robot's pose only, no patient
+data; see docs/ui.md for why it needs no login.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from core.robot import TwinRobot
+from server.viz.scene import TwinScene
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_RATE_HZ = 50.0
+MIN_RATE_HZ = 30.0  # issue 7: the view follows the robot at 30 Hz or more
+
+
+class ReplayError(ValueError):
+    """A session log that cannot be replayed; names the column and what is wrong."""
+
+    def __init__(self, field_name: str, value: object, limit: str) -> None:
+        self.field, self.value, self.limit = field_name, value, limit
+        super().__init__(f"{field_name} = {value!r}: {limit}")
+
+
+def _finite_or(primary: Any, fallback: Any) -> np.ndarray:
+    values = np.asarray(primary if primary is not None else fallback, dtype=float)
+    return values if np.all(np.isfinite(values)) else np.asarray(fallback, dtype=float)
+
+
+def pose_from_state(state: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """(stance pose (6,), slider positions (12,)) to draw from the worker's latest state: the measured
+    stance pose (forward kinematics of the measured sliders) so that rods meet the platform, else the command."""
+    commanded = np.asarray(state["stance_pose"], dtype=float)
+    stance = _finite_or(state.get("measured_stance_pose"), commanded)
+    sliders = _finite_or(state.get("slider_position_m"), state.get("slider_command_m", np.zeros(12)))
+    return stance, sliders
+
+
+class Replay:
+    """A recorded run resampled to the view's frame period: frame k shows the sample at k / rate_hz."""
+
+    def __init__(self, run_id: int, columns: Mapping[str, np.ndarray], rate_hz: float) -> None:
+        for name in ("time_s", "stance_pose", "slider_position_m"):
+            if name not in columns:
+                raise ReplayError(f"columns.{name}", None, "the session log has no such column")
+        time_s = np.asarray(columns["time_s"], dtype=float)
+        if len(time_s) < 2:
+            raise ReplayError("columns.time_s", len(time_s), "needs at least 2 samples to replay")
+        frame_times = time_s[0] + np.arange(0.0, time_s[-1] - time_s[0], 1.0 / rate_hz)
+        rows = np.clip(np.searchsorted(time_s, frame_times), 0, len(time_s) - 1)
+        stance = np.asarray(columns["stance_pose"], dtype=float)[rows]
+        measured = columns.get("measured_stance_pose")
+        if measured is not None:
+            measured = np.asarray(measured, dtype=float)[rows]
+            stance = np.where(np.isfinite(measured).all(axis=1, keepdims=True), measured, stance)
+        self.run_id = run_id
+        self.stance_poses = stance
+        self.slider_positions_m = np.asarray(columns["slider_position_m"], dtype=float)[rows]
+        self.duration_s = float(time_s[-1] - time_s[0])
+        self.rate_hz = rate_hz
+        self.frame = 0
+
+    @property
+    def finished(self) -> bool:
+        return self.frame >= len(self.stance_poses)
+
+    @property
+    def position_s(self) -> float:
+        return min(self.frame / self.rate_hz, self.duration_s)
+
+
+class LiveView:
+    """The viser server, its `TwinScene`, and the thread that feeds it (live or replay)."""
+
+    def __init__(
+        self,
+        twin: TwinRobot,
+        latest_state: Callable[[], Mapping[str, Any]] | None,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8081,
+        rate_hz: float = DEFAULT_RATE_HZ,
+    ) -> None:
+        if not MIN_RATE_HZ <= rate_hz <= 120.0:
+            raise ValueError(f"rate_hz = {rate_hz!r}: must be in [{MIN_RATE_HZ:g}, 120] Hz")
+        self.twin, self.latest_state = twin, latest_state
+        self.host, self.requested_port, self.rate_hz = host, port, rate_hz
+        self._lock = threading.Lock()
+        self._replay: Replay | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_shown: tuple[bytes, bytes] | None = None
+        self.last_tick: int | None = None
+        self.server: Any = None
+        self.scene: TwinScene | None = None
+
+    def start(self) -> None:
+        import viser
+
+        self.server = viser.ViserServer(
+            host=self.host, port=self.requested_port, label="ssp-rehab 3D view", verbose=False
+        )
+        self.server.gui.configure_theme(control_layout="collapsible", show_logo=False, show_share_button=False)
+        self.server.initial_camera.position = (3.4, -3.4, 2.4)
+        self.server.initial_camera.look_at = (0.0, 0.0, 0.6)
+        self.scene = TwinScene(self.server, self.twin)
+        self._thread = threading.Thread(target=self._run, name="viz-feed", daemon=True)
+        self._thread.start()
+        logger.info("3D view on port %d at %.0f Hz", self.port, self.rate_hz)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        if self.server is not None:
+            self.server.stop()
+
+    @property
+    def port(self) -> int:
+        return int(self.server.get_port()) if self.server is not None else self.requested_port
+
+    # --- modes -------------------------------------------------------------------------------------
+
+    def replay(self, run_id: int, columns: Mapping[str, np.ndarray]) -> Replay:
+        replay = Replay(run_id, columns, self.rate_hz)
+        with self._lock:
+            self._replay = replay
+        return replay
+
+    def go_live(self) -> None:
+        with self._lock:
+            self._replay = None
+            self._last_shown = None
+
+    def status(self) -> dict[str, Any]:
+        with self._lock:
+            replay = self._replay
+        scene = self.scene
+        status: dict[str, Any] = {
+            "available": scene is not None,
+            "port": self.port,
+            "rate_hz": self.rate_hz,
+            "mode": "live" if replay is None else "replay",
+            "frames_shown": scene.frames_shown if scene is not None else 0,
+            "last_tick": self.last_tick,
+            "robot_connected": self.latest_state is not None,
+        }
+        if replay is not None:
+            status.update(
+                replay_run_id=replay.run_id,
+                replay_position_s=round(replay.position_s, 3),
+                replay_duration_s=round(replay.duration_s, 3),
+                replay_finished=replay.finished,
+            )
+        return status
+
+    # --- the feed ----------------------------------------------------------------------------------
+
+    def step(self) -> bool:
+        """Show one frame (live or replay); False when there was nothing new to show."""
+        assert self.scene is not None
+        with self._lock:
+            replay = self._replay
+        if replay is not None:
+            if replay.finished:
+                return False
+            self.scene.show(replay.stance_poses[replay.frame], replay.slider_positions_m[replay.frame])
+            replay.frame += 1
+            return True
+        if self.latest_state is None:
+            return False
+        state = self.latest_state()
+        stance, sliders = pose_from_state(state)
+        key = (stance.tobytes(), sliders.tobytes())
+        if key == self._last_shown:
+            return False  # the robot stands still: nothing to send to the browsers
+        self._last_shown = key
+        self.last_tick = int(state.get("tick", 0))
+        self.scene.show(stance, sliders)
+        return True
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        next_frame = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                self.step()
+            except Exception:
+                logger.exception("3D view: one frame failed")
+            next_frame += period
+            delay = next_frame - time.monotonic()
+            if delay < -period:
+                next_frame = time.monotonic()  # fell behind (a busy machine): skip ahead, never burst
+            self._stop.wait(max(0.0, delay))
+
+
+def start_view(settings: Any, twin: TwinRobot, worker: Any) -> LiveView | None:
+    """The 3D view for the service, or None (logged) when it is turned off or cannot listen."""
+    if not settings.viz_enabled:
+        return None
+    view = LiveView(
+        twin,
+        worker.latest_state if worker is not None else None,
+        host=settings.viz_host,
+        port=settings.viz_port,
+        rate_hz=settings.viz_rate_hz,
+    )
+    try:
+        view.start()
+    except Exception:
+        logger.exception(
+            "the 3D view did not start on %s:%d: the console runs without it", settings.viz_host, settings.viz_port
+        )
+        view.stop()
+        return None
+    return view

@@ -1,0 +1,197 @@
+"""The simulated patient: body sizing, balance, falls, the harness, and streaming = batch."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from core.patient import (
+    ParameterError,
+    PatientParameters,
+    Perturbation,
+    SimulatedPatient,
+    simulate,
+    simulate_trial,
+    support_motion,
+)
+
+PERIOD_S = 0.001
+
+
+def healthy(**overrides: float) -> PatientParameters:
+    return PatientParameters.preset("healthy", 70.0, 1.75, **overrides)
+
+
+def impaired(**overrides: float) -> PatientParameters:
+    return PatientParameters.preset("impaired", 70.0, 1.75, **overrides)
+
+
+def test_body_is_sized_from_winters_proportions() -> None:
+    params = healthy()
+    assert params.com_height_above_ankle_m == pytest.approx((0.55 - 0.039) * 1.75)
+    assert params.pendulum_mass_kg == pytest.approx(70.0 * (1 - 0.029))
+    expected_inertia = params.pendulum_mass_kg * (params.com_height_above_ankle_m**2 + (0.24 * 1.75) ** 2)
+    assert params.moment_of_inertia_kg_m2 == pytest.approx(expected_inertia)
+    assert params.foot.heel_m + params.foot.toe_m == pytest.approx(0.152 * 1.75)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("body_mass_kg", 5.0), ("height_m", math.nan), ("proprioceptive_weight", 1.5), ("feedback_delay_s", -0.1)],
+)
+def test_invalid_parameters_are_refused_naming_the_field(field: str, value: float) -> None:
+    with pytest.raises(ParameterError) as error:
+        healthy(**{field: value}) if field not in ("body_mass_kg", "height_m") else PatientParameters(
+            **{"body_mass_kg": 70.0, "height_m": 1.75, field: value}
+        )
+    assert error.value.field == field
+    assert "must be" in str(error.value)
+
+
+def test_unknown_preset_is_refused() -> None:
+    with pytest.raises(ParameterError, match="preset"):
+        PatientParameters.preset("athlete", 70.0, 1.75)
+
+
+def test_parameters_round_trip_through_a_dict() -> None:
+    params = impaired()
+    assert PatientParameters.from_dict(params.to_dict()) == params
+    with pytest.raises(ParameterError, match="unknown"):
+        PatientParameters.from_dict({**params.to_dict(), "wings": 2})
+
+
+def test_quiet_stance_carries_body_weight_on_two_feet_with_physiological_sway() -> None:
+    params = healthy()
+    _, trial = simulate_trial(params, [], 20.0, PERIOD_S, seed=3)
+    assert math.isnan(trial.fall_onset_s)
+    total = trial.plate_force_z_n.sum(axis=1)
+    assert np.mean(total) == pytest.approx(params.body_weight_n, rel=0.01)
+    assert np.mean(trial.plate_force_z_n[:, 0]) == pytest.approx(0.5 * params.body_weight_n, rel=0.05)
+    sway_std_deg = np.degrees(trial.sway_angle_rad.std(axis=0))
+    assert np.all((sway_std_deg > 0.05) & (sway_std_deg < 1.5))
+    assert np.max(trial.harness_load_n) < 0.05 * params.body_weight_n  # the rope stays slack
+
+
+def test_healthy_patient_stays_standing_through_mild_perturbations() -> None:
+    mild = [
+        Perturbation("translation", 2.0, 0.0, 1.0, 0.5),
+        Perturbation("translation", 7.0, math.pi, 1.0, 0.5),
+        Perturbation("tilt", 12.0, math.pi, math.radians(2.0), 0.5),
+        Perturbation("tilt", 18.0, math.pi / 2, math.radians(2.0), 0.5),
+    ]
+    for seed in range(3):
+        _, trial = simulate_trial(healthy(), mild, 24.0, PERIOD_S, seed=seed)
+        assert math.isnan(trial.fall_onset_s), f"seed {seed}"
+        assert not trial.fallen.any()
+
+
+@pytest.mark.parametrize(
+    "perturbation",
+    [Perturbation("translation", 2.0, 0.0, 3.0, 0.5), Perturbation("tilt", 2.0, math.pi, math.radians(8.0), 0.5)],
+)
+def test_impaired_patient_falls_under_a_large_perturbation_and_the_harness_catches(perturbation: Perturbation) -> None:
+    params = impaired()
+    _, trial = simulate_trial(params, [perturbation], 8.0, PERIOD_S, seed=1)
+    assert perturbation.onset_s < trial.fall_onset_s < perturbation.onset_s + 3.0
+    after = trial.time_s >= trial.fall_onset_s
+    assert np.all(trial.fallen == after)  # the flag latches at the onset
+    assert np.max(trial.harness_load_n[after]) > 0.3 * params.body_weight_n
+    assert np.max(trial.harness_load_n[~after]) < 0.1 * params.body_weight_n
+    # What the harness carries is taken off the plates.
+    caught = np.argmax(trial.harness_load_n)
+    assert trial.plate_force_z_n[caught].sum() < 0.9 * params.body_weight_n
+
+
+def test_support_acceleration_tips_the_body_the_other_way() -> None:
+    forward = Perturbation("translation", 1.0, 0.0, 1.0, 0.5)
+    _, trial = simulate_trial(healthy(sensory_noise_rad=0.0, motor_noise_per_mgh=0.0), [forward], 1.2, PERIOD_S, 0)
+    assert trial.sway_angle_rad[-1, 0] < -0.005  # the feet run forward, the body lags backward
+    left = Perturbation("translation", 1.0, math.pi / 2, 1.5, 0.5)
+    _, trial = simulate_trial(healthy(sensory_noise_rad=0.0, motor_noise_per_mgh=0.0), [left], 1.2, PERIOD_S, 0)
+    assert trial.sway_angle_rad[-1, 1] < -0.005
+    # Swaying to the right loads the right foot (index 0).
+    assert trial.plate_force_z_n[-1, 0] > trial.plate_force_z_n[-1, 1] + 20.0
+
+
+def test_tilt_enters_through_proprioception_and_passive_stiffness() -> None:
+    quiet = {"sensory_noise_rad": 0.0, "motor_noise_per_mgh": 0.0, "plate_cop_noise_m": 0.0}
+    toes_down = [Perturbation("tilt", 0.5, 0.0, math.radians(2.0), 0.5)]
+    _, trial = simulate_trial(healthy(proprioceptive_weight=1.0, **quiet), toes_down, 1.5, PERIOD_S, 0)
+    assert trial.sway_angle_rad[-1, 0] > math.radians(0.5)  # body follows the plate forward
+    _, vestibular = simulate_trial(healthy(proprioceptive_weight=0.0, **quiet), toes_down, 1.5, PERIOD_S, 0)
+    assert abs(vestibular.sway_angle_rad[-1, 0]) < trial.sway_angle_rad[-1, 0]  # graviception resists it
+
+
+def test_cop_stays_on_the_feet_when_the_torque_saturates() -> None:
+    params = healthy(plate_cop_noise_m=0.0)
+    _, trial = simulate_trial(params, [Perturbation("translation", 1.0, 0.0, 3.0, 0.5)], 5.0, PERIOD_S, 2)
+    loaded = trial.plate_force_z_n > 0.1 * params.body_weight_n
+    cop_x = trial.plate_cop_m[..., 0][loaded]
+    assert -params.foot.heel_m - 1e-9 <= cop_x.min() and cop_x.max() <= params.foot.toe_m + 1e-9
+    # It reached an edge and stayed there: the torque saturated instead of the COP leaving the foot.
+    at_edge = np.isclose(cop_x, -params.foot.heel_m, atol=1e-9) | np.isclose(cop_x, params.foot.toe_m, atol=1e-9)
+    assert np.count_nonzero(at_edge) > 50
+
+
+def test_streaming_steps_reproduce_the_batch_run_exactly() -> None:
+    motion = support_motion([Perturbation("translation", 0.5, 0.3, 2.5, 0.5)], 3.0, PERIOD_S)
+    batch = simulate(impaired(), PERIOD_S, 11, motion.acceleration_m_s2, motion.tilt_rad, motion.angular_velocity_rad_s)
+    patient = SimulatedPatient(impaired(), PERIOD_S, seed=11)
+    for index in range(len(motion.time_s)):
+        sample = patient.step(
+            motion.acceleration_m_s2[index], motion.tilt_rad[index], motion.angular_velocity_rad_s[index]
+        )
+        assert np.array_equal(sample.plate_force_z_n, batch.plate_force_z_n[index])
+        assert np.array_equal(sample.plate_cop_m, batch.plate_cop_m[index])
+        assert sample.harness_load_n == batch.harness_load_n[index]
+        assert sample.fallen == batch.fallen[index]
+    assert patient.fall_onset_s == batch.fall_onset_s
+    # Per-tick: the same sample object and buffers every step, nothing new allocated for the caller.
+    first = patient.step(np.zeros(3), np.zeros(2), np.zeros(3))
+    forces = first.plate_force_z_n
+    assert patient.step(np.zeros(3), np.zeros(2), np.zeros(3)) is first and first.plate_force_z_n is forces
+    patient.reset()
+    assert not patient.fallen and math.isnan(patient.fall_onset_s)
+
+
+def test_seeds_are_reproducible_and_distinct() -> None:
+    motion = support_motion([], 1.0, PERIOD_S)
+    runs = [
+        simulate(healthy(), PERIOD_S, seed, motion.acceleration_m_s2, motion.tilt_rad, motion.angular_velocity_rad_s)
+        for seed in (4, 4, 5)
+    ]
+    assert np.array_equal(runs[0].plate_cop_m, runs[1].plate_cop_m)
+    assert not np.array_equal(runs[0].plate_cop_m, runs[2].plate_cop_m)
+
+
+def test_a_coarser_period_is_substepped_to_the_same_behaviour() -> None:
+    big = [Perturbation("translation", 1.0, 0.0, 3.0, 0.5)]
+    fine = simulate_trial(impaired(), big, 5.0, 0.001, 0)[1]
+    coarse = simulate_trial(impaired(), big, 5.0, 0.004, 0)[1]
+    assert coarse.fall_onset_s == pytest.approx(fine.fall_onset_s, abs=0.1)
+
+
+def test_bad_inputs_are_refused() -> None:
+    with pytest.raises(ParameterError, match="sample_period_s"):
+        SimulatedPatient(healthy(), 0.0)
+    patient = SimulatedPatient(healthy(), PERIOD_S)
+    with pytest.raises(ParameterError, match="support_acceleration_m_s2"):
+        patient.step(np.zeros(2), np.zeros(2), np.zeros(3))
+    with pytest.raises(ParameterError, match="support_tilt_rad"):
+        simulate(healthy(), PERIOD_S, 0, np.zeros((5, 3)), np.zeros((4, 2)), np.zeros((5, 3)))
+    with pytest.raises(ParameterError, match="magnitude"):
+        Perturbation("tilt", 1.0, 0.0, math.radians(40.0), 0.5)
+    with pytest.raises(ParameterError, match="kind"):
+        Perturbation("shove", 1.0, 0.0, 1.0, 0.5)
+
+
+def test_support_motion_shapes_a_tilt_pulse_that_returns_to_level() -> None:
+    motion = support_motion([Perturbation("tilt", 1.0, math.pi / 2, 0.1, 0.5)], 4.0, PERIOD_S)
+    roll = motion.tilt_rad[:, 0]
+    assert roll.min() == pytest.approx(-0.1)  # tipping toward +y is negative roll
+    assert roll[-1] == 0.0
+    # The angular velocity integrates to the tilt.
+    integrated = np.cumsum(motion.angular_velocity_rad_s[:, 0]) * PERIOD_S
+    assert np.max(np.abs(integrated - roll)) < 2e-3

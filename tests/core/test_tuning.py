@@ -1,0 +1,92 @@
+"""NSGA-II tuning of the washout (paper §4.2): the problem, its constraints and the chosen compromise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.kinematics import twin_inverse_kinematics
+from core.shaping import ParameterError
+from core.tuning import WashoutTuningProblem, knee_index, paper_square_wave, tune
+from core.washout import baseline_parameters
+
+
+@pytest.fixture(scope="module")
+def problem() -> WashoutTuningProblem:
+    return WashoutTuningProblem()
+
+
+@pytest.fixture(scope="module")
+def result(problem: WashoutTuningProblem):
+    return tune(seed=3, generations=12, population=24, problem=problem)
+
+
+def test_paper_square_wave_input() -> None:
+    force, rates = paper_square_wave(0.01)
+    time_s = np.arange(len(force)) * 0.01
+    assert len(force) == 1500 and np.all(rates == 0.0)
+    assert set(np.unique(force[time_s < 10.0, 0])) == {-2.0, 2.0}
+    assert np.all(force[time_s >= 10.0] == 0.0) and np.all(force[:, 1:] == 0.0)
+    assert force[0, 0] == 2.0 and force[100, 0] == -2.0 and force[200, 0] == 2.0  # period 2 s
+
+
+def test_population_is_evaluated_as_one_array_equal_to_one_by_one(problem: WashoutTuningProblem) -> None:
+    x = np.array([[2.0, 0.5, 0.4], [0.8, 0.1, 0.2], [4.0, 1.5, 1.5]])
+    objectives, constraints = problem.objectives_and_constraints(x)
+    assert objectives.shape == (3, 2) and constraints.shape == (3, 2)
+    for row in range(3):
+        single_f, single_g = problem.objectives_and_constraints(x[row : row + 1])
+        assert single_f[0] == pytest.approx(objectives[row], rel=1e-12)
+        assert single_g[0] == pytest.approx(constraints[row], rel=1e-12, abs=1e-15)
+
+
+def test_tilt_rate_constraint_flags_a_fast_tilt_filter(problem: WashoutTuningProblem) -> None:
+    _, constraints = problem.objectives_and_constraints(np.array([[2.0, 0.5, 0.2], [2.0, 0.5, 3.0]]))
+    assert constraints[0, 1] < 0.0 < constraints[1, 1]
+
+
+def test_linearised_stroke_constraint_tracks_the_exact_twin_ik(problem: WashoutTuningProblem) -> None:
+    poses = np.array([[0.05, -0.03, 0.02, 0.03, -0.02, 0.04], [-0.1, 0.08, -0.02, -0.02, 0.05, 0.0]])
+    solutions = twin_inverse_kinematics(problem.twin, poses)
+    exact = np.concatenate([solutions[side].slider_positions_m for side in problem.twin.sides], axis=1)
+    linear = problem._neutral_sliders_m + poses @ problem._stroke_jacobian.T
+    assert np.max(np.abs(exact - linear)) < 0.02  # second-order terms: ~1 cm at 0.1 m and 3°
+    # A platform that would need a slider 3 m down its rail breaks the constraint.
+    assert problem._stroke_excess_m(np.array([[[3.0], [0.0], [0.0], [0.0], [0.0], [0.0]]]))[0] > 0.0
+
+
+def test_knee_of_a_front_is_its_corner() -> None:
+    front = np.array([[0.0, 10.0], [1.0, 3.0], [2.0, 1.0], [6.0, 0.5], [10.0, 0.0]])
+    assert knee_index(front) == 2
+
+
+def test_compromise_is_non_dominated_and_beats_the_baseline(result, problem: WashoutTuningProblem) -> None:
+    chosen = np.array(list(result.optimized_objectives.values()))
+    front = result.pareto_objectives
+    dominated_by = np.all(front <= chosen, axis=1) & np.any(front < chosen, axis=1)
+    assert not np.any(dominated_by)
+    baseline = np.array(list(result.baseline_objectives.values()))
+    assert result.improves_on_baseline and np.all(chosen < baseline)
+    recomputed, constraints = problem.objectives_and_constraints(problem.variables_of(result.optimized)[None, :])
+    assert recomputed[0] == pytest.approx(chosen)
+    assert np.all(constraints <= 0.0)
+    summary = result.to_dict()
+    assert summary["pareto_size"] == len(front) and summary["optimized"]["params"]["tilt_break_rad_s"] > 0
+
+
+def test_tuning_is_reproducible_with_a_seed(result, problem: WashoutTuningProblem) -> None:
+    again = tune(seed=3, generations=12, population=24, problem=problem)
+    assert again.optimized == result.optimized
+    assert np.array_equal(again.pareto_objectives, result.pareto_objectives)
+
+
+def test_damping_can_be_tuned_and_bad_settings_are_refused() -> None:
+    problem = WashoutTuningProblem(tune_damping=True)
+    assert problem.n_var == 4
+    params = problem.parameters(np.array([1.0, 0.2, 0.3, 0.7]))[0]
+    assert params.translational_damping == params.tilt_damping == 0.7
+    with pytest.raises(ParameterError, match="population"):
+        tune(population=0, problem=problem)
+    with pytest.raises(ParameterError, match=r"bounds\.tilt_break_rad_s"):
+        WashoutTuningProblem(bounds={"tilt_break_rad_s": (2.0, 1.0)})
+    assert problem.baseline == baseline_parameters()

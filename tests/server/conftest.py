@@ -1,0 +1,391 @@
+"""Fixtures for the console-service tests: migrated SQLite and PostgreSQL databases, each test inside a
+transaction that is rolled back, seeded accounts with tokens, the app, and a fake real-time worker that
+implements the agreed WorkerClient interface."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import Engine, create_engine, text
+
+from server.app import create_app
+from server.auth.models import AuthSession
+from server.auth.security import TokenClaims, TokenSigner, hash_password, new_session_id
+from server.db import Database, create_database_engine, upgrade_database
+from server.settings import Settings
+from server.users.models import User
+
+POSTGRES_URL_ENV = "SSP_REHAB_TEST_POSTGRES_URL"
+TEST_SECRET = "test-secret-key-of-sufficient-length"
+ADMIN_PASSWORD = "admin-password-1"
+THERAPIST_PASSWORD = "therapist-password-1"
+
+try:
+    from server.realtime.telemetry import TELEMETRY_DTYPE
+except ImportError:  # the worker package is written in parallel; the agreed field names suffice here
+    TELEMETRY_DTYPE = np.dtype(
+        [
+            ("tick", np.int64),
+            ("time_s", np.float64),
+            ("utc_s", np.float64),
+            ("state", np.uint8),
+            ("cue_specific_force_m_s2", np.float64, (3,)),
+            ("cue_angular_velocity_rad_s", np.float64, (3,)),
+            ("stance_pose", np.float64, (6,)),
+            ("slider_command_m", np.float64, (12,)),
+            ("slider_position_m", np.float64, (12,)),
+            ("drive_force_n", np.float64, (12,)),
+            ("plate_force_z_n", np.float64, (2,)),
+            ("plate_cop_m", np.float64, (2, 2)),
+            ("harness_load_n", np.float64),
+            ("tick_compute_us", np.float32),
+            ("lateness_us", np.float32),
+        ]
+    )
+
+
+@dataclass
+class Seed:
+    """Accounts committed once per database, with tokens signed by the test key."""
+
+    backend: str
+    admin_id: int
+    therapist_id: int
+    admin_token: str
+    therapist_token: str
+
+    def headers(self, role: str = "therapist") -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.admin_token if role == 'admin' else self.therapist_token}"}
+
+
+def _seed_accounts(engine: Engine, backend: str) -> Seed:
+    signer = TokenSigner(TEST_SECRET.encode())
+    expires = dt.datetime.now(dt.UTC) + dt.timedelta(days=1)
+    tokens = {}
+    with engine.begin() as connection:
+        ids = {}
+        for username, role, password in (
+            ("admin", "admin", ADMIN_PASSWORD),
+            ("therapist", "therapist", THERAPIST_PASSWORD),
+        ):
+            user_id = connection.execute(
+                User.__table__.insert()
+                .values(
+                    username=username,
+                    full_name="",
+                    role=role,
+                    password_hash=hash_password(password),
+                    is_active=True,
+                    created_at=dt.datetime.now(dt.UTC),
+                )
+                .returning(User.__table__.c.id)
+            ).scalar_one()
+            session_id = new_session_id()
+            connection.execute(
+                AuthSession.__table__.insert().values(
+                    id=session_id, user_id=user_id, created_at=dt.datetime.now(dt.UTC), expires_at=expires
+                )
+            )
+            ids[role] = user_id
+            tokens[role] = signer.issue(TokenClaims(session_id, user_id, int(expires.timestamp())))
+    return Seed(backend, ids["admin"], ids["therapist"], tokens["admin"], tokens["therapist"])
+
+
+def postgres_url_or_skip() -> str:
+    url = os.environ.get(POSTGRES_URL_ENV)
+    if not url:
+        pytest.skip(
+            f"PostgreSQL tests need {POSTGRES_URL_ENV} (e.g. postgresql+psycopg://postgres@127.0.0.1:5432/test)"
+        )
+    probe = create_engine(url)
+    try:
+        with probe.connect():
+            pass
+    except Exception as error:
+        pytest.skip(f"PostgreSQL at {POSTGRES_URL_ENV} is unreachable: {type(error).__name__}: {error}".splitlines()[0])
+    finally:
+        probe.dispose()
+    return url
+
+
+@dataclass
+class ScratchDatabase:
+    """An empty database to migrate: a SQLite file, or a fresh schema in the test PostgreSQL database."""
+
+    backend: str
+    url: str
+    engine: Engine
+    drop: Callable[[], None]
+
+
+def scratch_database(backend: str, directory: Path) -> ScratchDatabase:
+    if backend == "sqlite":
+        url = f"sqlite:///{directory / f'{uuid.uuid4().hex}.sqlite3'}"
+        engine = create_database_engine(url)
+        return ScratchDatabase(backend, url, engine, engine.dispose)
+    base_url = postgres_url_or_skip()
+    schema = f"ssp_rehab_test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(base_url)
+    with admin.begin() as connection:
+        connection.execute(text(f'CREATE SCHEMA "{schema}"'))
+    engine = create_database_engine(base_url, connect_args={"options": f"-csearch_path={schema}"})
+
+    def drop() -> None:
+        engine.dispose()
+        with admin.begin() as connection:
+            connection.execute(text(f'DROP SCHEMA "{schema}" CASCADE'))
+        admin.dispose()
+
+    separator = "&" if "?" in base_url else "?"
+    return ScratchDatabase(backend, f"{base_url}{separator}options=-csearch_path%3D{schema}", engine, drop)
+
+
+BACKENDS = ["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)]
+
+
+@pytest.fixture(scope="session", params=BACKENDS)
+def migrated(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Engine, Seed]]:
+    scratch = scratch_database(request.param, tmp_path_factory.mktemp("db"))
+    try:
+        upgrade_database(scratch.engine)
+        yield scratch.engine, _seed_accounts(scratch.engine, request.param)
+    finally:
+        scratch.drop()
+
+
+@pytest.fixture
+def seed(migrated: tuple[Engine, Seed]) -> Seed:
+    return migrated[1]
+
+
+@pytest.fixture
+def database(migrated: tuple[Engine, Seed]) -> Iterator[Database]:
+    """The app's database for one test: everything it writes is rolled back afterwards."""
+    engine = migrated[0]
+    connection = engine.connect()
+    transaction = connection.begin()
+    try:
+        yield Database(engine, connection=connection)
+    finally:
+        transaction.rollback()
+        connection.close()
+
+
+@pytest.fixture
+def settings(tmp_path: Path) -> Settings:
+    return Settings(
+        _env_file=None,  # type: ignore[call-arg]
+        data_dir=tmp_path,
+        secret_key=TEST_SECRET,
+        start_worker=False,
+        telemetry_rate_hz=60.0,
+        log_flush_interval_s=0.05,
+    )
+
+
+@pytest.fixture
+def client(settings: Settings, database: Database) -> Iterator[TestClient]:
+    """The service with no robot connected."""
+    with TestClient(create_app(settings, database=database, worker=None)) as test_client:
+        yield test_client
+
+
+@dataclass
+class FakeWorker:
+    """Implements the agreed WorkerClient interface in memory: records commands, produces telemetry and events."""
+
+    sample_rate_hz: float = 1000.0
+    calls: list[tuple[str, tuple[Any, ...]]] = field(default_factory=list)
+    refuse_with: Exception | None = None
+    tick: int = 0
+    _telemetry: list[np.ndarray] = field(default_factory=list)
+    _events: list[dict[str, Any]] = field(default_factory=list)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    estopped: threading.Event = field(default_factory=threading.Event)
+
+    def _command(self, name: str, *args: Any) -> None:
+        if self.refuse_with is not None and name not in ("emergency_stop", "latest_state"):
+            raise self.refuse_with
+        with self._lock:
+            self.calls.append((name, args))
+
+    def start(self) -> None: ...
+    def shutdown(self) -> None: ...
+
+    def load_prescription(self, prescription: dict[str, Any], patient: dict[str, Any] | None) -> None:
+        self._command("load_prescription", prescription, patient)
+
+    def start_motion(self) -> None:
+        self._command("start_motion")
+
+    def pause(self) -> None:
+        self._command("pause")
+
+    def resume(self) -> None:
+        self._command("resume")
+
+    def stop(self) -> None:
+        self._command("stop")
+
+    def emergency_stop(self) -> None:
+        self._command("emergency_stop")
+        self.estopped.set()
+
+    def reset(self) -> None:
+        self._command("reset")
+
+    def latest_state(self) -> dict[str, Any]:
+        return {"state": "running", "tick": self.tick, "time_s": self.tick / self.sample_rate_hz}
+
+    def command_names(self) -> list[str]:
+        with self._lock:
+            return [name for name, _ in self.calls]
+
+    def produce(self, samples: int) -> np.ndarray:
+        """Append `samples` ticks of telemetry, as the worker's ring would hold them."""
+        records = np.zeros(samples, dtype=TELEMETRY_DTYPE)
+        ticks = np.arange(self.tick, self.tick + samples)
+        records["tick"] = ticks
+        records["time_s"] = ticks / self.sample_rate_hz
+        if "utc_s" in records.dtype.names:
+            records["utc_s"] = time.time() - (samples - 1 - np.arange(samples)) / self.sample_rate_hz
+        records["stance_pose"][:, 1] = 0.01 * np.sin(ticks / self.sample_rate_hz)
+        records["plate_force_z_n"] = 320.0
+        records["harness_load_n"] = 12.0
+        with self._lock:
+            self.tick += samples
+            self._telemetry.append(records)
+        return records
+
+    def emit_event(self, kind: str, **details: Any) -> None:
+        with self._lock:
+            self._events.append(
+                {
+                    "kind": kind,
+                    "tick": self.tick,
+                    "tick_time_s": self.tick / self.sample_rate_hz,
+                    "utc": dt.datetime.now(dt.UTC).isoformat(),
+                    "detector": "test",
+                    "details": details,
+                }
+            )
+
+    def drain_telemetry(self) -> np.ndarray:
+        with self._lock:
+            drained = np.concatenate(self._telemetry) if self._telemetry else np.zeros(0, dtype=TELEMETRY_DTYPE)
+            self._telemetry = []
+        return drained
+
+    def drain_events(self) -> list[dict[str, Any]]:
+        with self._lock:
+            drained, self._events = self._events, []
+        return drained
+
+
+@pytest.fixture
+def fake_worker() -> FakeWorker:
+    return FakeWorker()
+
+
+@pytest.fixture
+def robot_client(settings: Settings, database: Database, fake_worker: FakeWorker) -> Iterator[TestClient]:
+    """The service with the fake worker connected (and the session recorder running)."""
+    with TestClient(create_app(settings, database=database, worker=fake_worker)) as test_client:
+        yield test_client
+
+
+def wait_until(condition: Callable[[], Any], timeout_s: float = 5.0) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.01)
+    raise AssertionError("condition not met in time")
+
+
+# --- records most tests need ------------------------------------------------------------------------
+
+PATIENT = {
+    "identifier": "MRN-4711",
+    "name": "Greta Testperson",
+    "date_of_birth": "1950-02-03",
+    "sex": "female",
+    "height_m": 1.65,
+    "body_mass_kg": 60.0,
+    "diagnosis": "stroke",
+    "affected_side": "left",
+}
+SEGMENT = {
+    "cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.5},
+    "duration_s": 30.0,
+    "limits": {"tilt_max_rad": 0.2},
+}
+
+
+@dataclass
+class Booked:
+    patient_id: int
+    prescription_id: int
+    session_id: int
+
+
+def create_patient(client: TestClient, headers: dict[str, str], **overrides: Any) -> int:
+    response = client.post("/api/v1/patients", json={**PATIENT, **overrides}, headers=headers)
+    assert response.status_code == 201, response.text
+    return int(response.json()["id"])
+
+
+def create_prescription(client: TestClient, headers: dict[str, str], patient_id: int) -> int:
+    body = {"patient_id": patient_id, "name": "Lateral sway", "segments": [SEGMENT]}
+    response = client.post("/api/v1/prescriptions", json=body, headers=headers)
+    assert response.status_code == 201, response.text
+    return int(response.json()["id"])
+
+
+def book(
+    client: TestClient,
+    headers: dict[str, str],
+    *,
+    patient_id: int,
+    prescription_id: int,
+    start: str = "2031-05-06T09:00:00+00:00",
+    robot: str = "twin-1",
+    duration_s: int = 1800,
+    **extra: Any,
+) -> Any:
+    body = {
+        "patient_id": patient_id,
+        "prescription_id": prescription_id,
+        "robot": robot,
+        "start": start,
+        "duration_s": duration_s,
+        **extra,
+    }
+    return client.post("/api/v1/sessions", json=body, headers=headers)
+
+
+def booked_session(
+    client: TestClient,
+    headers: dict[str, str],
+    *,
+    start: str = "2031-05-06T09:00:00+00:00",
+    robot: str = "twin-1",
+    **patient_overrides: Any,
+) -> Booked:
+    patient_id = create_patient(client, headers, **patient_overrides)
+    prescription_id = create_prescription(client, headers, patient_id)
+    response = book(client, headers, patient_id=patient_id, prescription_id=prescription_id, start=start, robot=robot)
+    assert response.status_code == 201, response.text
+    return Booked(patient_id, prescription_id, response.json()[0]["id"])

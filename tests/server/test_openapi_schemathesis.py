@@ -1,0 +1,96 @@
+"""The OpenAPI document: every request-body schema carries an example the API accepts as-is (with `*_id`
+fields pointing at existing records), and a bounded schemathesis run over every operation, authenticated,
+never gets a 5xx answer."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+import schemathesis
+from fastapi.testclient import TestClient
+from hypothesis import HealthCheck, given
+from hypothesis import settings as hypothesis_settings
+
+from server.app import create_app
+from server.db import Database
+from server.settings import Settings
+from tests.server.conftest import FakeWorker, Seed, create_patient, create_prescription
+
+EXAMPLES_PER_OPERATION = 6
+# Operations that would end the test's own login (revoking the token every later call uses).
+TOKEN_ENDING = {("POST", "/api/v1/auth/logout"), ("PATCH", "/api/v1/users/{user_id}")}
+
+
+def request_bodies(document: dict[str, Any]) -> Iterator[tuple[str, str, dict[str, Any]]]:
+    for path, operations in document["paths"].items():
+        for method, operation in operations.items():
+            body = operation.get("requestBody")
+            if body is not None:
+                reference = body["content"]["application/json"]["schema"]["$ref"]
+                yield method.upper(), path, document["components"]["schemas"][reference.rsplit("/", 1)[-1]]
+
+
+def test_every_request_body_has_an_example_the_api_accepts(client: TestClient, seed: Seed) -> None:
+    document = client.get("/openapi.json").json()
+    admin = seed.headers("admin")
+    patient_id = create_patient(client, admin)
+    existing = {
+        "patient_id": patient_id,
+        "prescription_id": create_prescription(client, admin, patient_id),
+        "user_id": seed.therapist_id,
+        "therapist_id": seed.therapist_id,
+    }
+    bodies = list(request_bodies(document))
+    assert len(bodies) >= 9
+    # Create before update, so that the updates find their records.
+    for method, path, schema in sorted(bodies, key=lambda item: item[0] != "POST"):
+        assert schema.get("examples"), f"{method} {path}: no example"
+        example = {k: existing.get(k, v) if k.endswith("_id") else v for k, v in schema["examples"][0].items()}
+        url = re.sub(r"\{(\w+)\}", lambda m: str(existing[m.group(1)]), path)
+        response = client.request(method, url, json=example, headers=admin)
+        if path == "/api/v1/auth/login":
+            assert response.status_code in (200, 401), response.text  # valid input; the example account may not exist
+        elif response.status_code != 503:  # 503: what it drives (robot, 3D view) is not running in this test
+            assert 200 <= response.status_code < 300, (method, path, response.text)
+        if (method, path) == ("POST", "/api/v1/sessions"):
+            existing["session_id"] = response.json()[0]["id"]
+
+
+@pytest.mark.slow
+def test_no_operation_answers_with_a_server_error(settings: Settings, database: Database, seed: Seed) -> None:
+    """A bounded run: a few generated cases per operation (schemathesis' Python API: its pytest plugin
+    does not load under this pytest version)."""
+    server_errors: list[str] = []
+    with TestClient(create_app(settings, database=database, worker=FakeWorker())) as client:
+        admin = seed.headers("admin")
+        patient_id = create_patient(client, admin)
+        create_prescription(client, admin, patient_id)
+        api = schemathesis.openapi.from_asgi("/openapi.json", client.app)
+        operations = [result.ok() for result in api.get_all_operations()]
+        assert len(operations) >= 35
+        for operation in operations:
+            if (operation.method.upper(), operation.path) in TOKEN_ENDING:
+                continue  # would revoke the token this run uses; covered by test_api_auth and test_api_users
+
+            @given(case=operation.as_strategy())
+            @hypothesis_settings(
+                max_examples=EXAMPLES_PER_OPERATION,
+                deadline=None,
+                derandomize=True,
+                suppress_health_check=list(HealthCheck),
+                database=None,
+            )
+            def call(case: Any) -> None:
+                response = case.call(headers=admin)
+                # 503 is the documented answer of a part that is not running here (the 3D view), not a crash.
+                unavailable = response.status_code == 503 and "not running" in response.text
+                if response.status_code >= 500 and not unavailable:
+                    server_errors.append(
+                        f"{case.method} {case.formatted_path}: {response.status_code} {response.text[:200]}"
+                    )
+
+            call()
+    assert server_errors == []
