@@ -1,9 +1,13 @@
-"""Console-service latency (issue 6, Benchmarks): p50/p99 of `GET /api/v1/patients` and of schedule queries
-(`GET /api/v1/sessions` for one robot and one week) with 50 concurrent clients, on SQLite and PostgreSQL.
+"""Console-service benchmarks (issue 6, Benchmarks).
 
-The service runs as `ssp-rehab serve --no-robot` in a subprocess on 127.0.0.1 against a database seeded with
-200 patients and 2,000 bookings; 50 httpx async clients share a bounded number of requests. Each patient
-listing also writes its audit entry (issue 6 §2), so it is a read plus a write.
+1. p50/p99 latency of `GET /api/v1/patients` and of schedule queries (`GET /api/v1/sessions` for one robot
+   and one week) with 50 concurrent clients, on SQLite and PostgreSQL. The service runs as
+   `ssp-rehab serve --no-robot` in a subprocess on 127.0.0.1 against a database seeded with 200 patients and
+   2,000 bookings; 50 httpx async clients share a bounded number of requests. Each patient listing also
+   writes its audit entry (issue 6 §2), so it is a read plus a write.
+2. Telemetry WebSocket fan-out: 10 clients on `/sessions/{id}/telemetry` with the real worker (kinematic
+   backend, 1 kHz), the frame rate each client receives, and the worker's deadline misses per second
+   with no client and with 10 clients (same run, so the comparison is a ratio on one machine).
 """
 
 from __future__ import annotations
@@ -168,6 +172,92 @@ def _measure(url: str, requests: int) -> dict[str, Any]:
             process.wait(timeout=30)
 
 
+FAN_OUT_CLIENTS = 10
+TARGET_FRAME_RATE_HZ = 27.0  # the service sends 30 Hz; allow 10 % for scheduling jitter
+
+
+def _serve_with_robot(data_dir: Path) -> tuple[subprocess.Popen[bytes], str]:
+    port = _free_port()
+    environment = {**os.environ, "SSP_REHAB_SECRET_KEY": SECRET, "SSP_REHAB_VIZ_ENABLED": "false"}
+    command = [sys.executable, "-m", "server.cli.main", "serve", "--backend", "kinematic", "--port", str(port),
+               "--data-dir", str(data_dir)]  # fmt: skip
+    log = open(data_dir / "service.log", "wb")  # noqa: SIM115 - closed with the process
+    process = subprocess.Popen(command, env=environment, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 180.0
+    while time.monotonic() < deadline:
+        try:
+            health = httpx.get(f"{base}/api/v1/health", timeout=1.0)
+            if health.status_code == 200 and health.json()["robot_connected"]:
+                return process, base
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.5)
+    process.kill()
+    raise RuntimeError("the service with a robot did not come up within 180 s")
+
+
+def _deadline_misses(base: str, headers: dict[str, str]) -> tuple[int, int]:
+    state = httpx.get(f"{base}/api/v1/robot/state", headers=headers, timeout=10.0).json()
+    return int(state["deadline_misses"]), int(state["tick"])
+
+
+async def _watch(url: str, token: str, seconds: float) -> int:
+    import websockets
+
+    frames = 0
+    async with websockets.connect(url, additional_headers={"Authorization": f"Bearer {token}"}) as socket:
+        stop_at = time.monotonic() + seconds
+        while time.monotonic() < stop_at:
+            await asyncio.wait_for(socket.recv(), timeout=5.0)
+            frames += 1
+    return frames
+
+
+def _misses_per_s(base: str, headers: dict[str, str], during: Any) -> tuple[float, Any]:
+    misses_before, tick_before = _deadline_misses(base, headers)
+    started = time.perf_counter()
+    result = during()
+    elapsed = time.perf_counter() - started
+    misses_after, tick_after = _deadline_misses(base, headers)
+    return (misses_after - misses_before) / elapsed, (result, tick_after - tick_before)
+
+
+def _fan_out(seconds: float) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as directory:
+        data_dir = Path(directory)
+        _seed(f"sqlite:///{(data_dir / 'ssp-rehab.sqlite3').resolve()}")  # the default database of `serve`
+        process, base = _serve_with_robot(data_dir)
+        try:
+            login = httpx.post(f"{base}/api/v1/auth/login", json={"username": "bench", "password": "bench-password"})
+            token = login.json()["access_token"]
+            headers = {"Authorization": f"Bearer {token}"}
+            url = base.replace("http://", "ws://") + "/api/v1/sessions/1/telemetry"
+            idle_misses, (_, idle_ticks) = _misses_per_s(base, headers, lambda: time.sleep(seconds))
+
+            async def watch_all() -> list[int]:
+                return list(await asyncio.gather(*(_watch(url, token, seconds) for _ in range(FAN_OUT_CLIENTS))))
+
+            fan_out_misses, (frames, fan_out_ticks) = _misses_per_s(base, headers, lambda: asyncio.run(watch_all()))
+        finally:
+            process.terminate()
+            process.wait(timeout=60)
+    rates = [count / seconds for count in frames]
+    return {
+        "clients": FAN_OUT_CLIENTS,
+        "seconds_per_phase": seconds,
+        "frame_rate_min_hz": round(min(rates), 1),
+        "frame_rate_mean_hz": round(float(np.mean(rates)), 1),
+        "target_frame_rate_hz": TARGET_FRAME_RATE_HZ,
+        "worker_ticks_per_s_without_clients": round(idle_ticks / seconds, 1),
+        "worker_ticks_per_s_with_clients": round(fan_out_ticks / seconds, 1),
+        "deadline_misses_per_s_without_clients": round(idle_misses, 2),
+        "deadline_misses_per_s_with_clients": round(fan_out_misses, 2),
+        # Not raising the worker's deadline misses: at most 1 more per second than with no client watching.
+        "met": min(rates) >= TARGET_FRAME_RATE_HZ and fan_out_misses <= idle_misses + 1.0,
+    }
+
+
 def _postgres_schema_url() -> tuple[str, Any] | None:
     from sqlalchemy import create_engine, text
 
@@ -205,4 +295,8 @@ def run(*, quick: bool) -> dict[str, Any]:
             results["postgresql"] = _measure(url, requests)
         finally:
             drop()
+    try:
+        results["telemetry_fan_out"] = _fan_out(3.0 if quick else 10.0)
+    except Exception as error:  # the worker is another part of the project: report, do not hide the API figures
+        results["telemetry_fan_out"] = f"not measured: {type(error).__name__}: {error}"
     return results

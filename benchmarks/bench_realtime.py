@@ -22,7 +22,7 @@ import numpy as np
 
 from core.robot import default_twin
 from server.hal.kinematic import KinematicHal
-from server.realtime.client import WorkerClient
+from server.realtime.client import CommandRefused, WorkerClient
 from server.realtime.loop import LATE_THRESHOLD_NS, configure_realtime
 from server.realtime.pipeline import TickPipeline
 from server.realtime.prescription import plan_prescription
@@ -93,7 +93,20 @@ class _TappedClient(WorkerClient):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.tapped: list[np.ndarray] = []
+        self.tapped_events: list[dict[str, Any]] = []
         self._tap_lock = threading.Lock()
+
+    def drain_events(self) -> list[dict[str, Any]]:
+        with self._tap_lock:
+            events = super().drain_events()
+            self.tapped_events.extend(events)
+            return events
+
+    def take_events(self) -> list[dict[str, Any]]:
+        self.drain_events()
+        with self._tap_lock:
+            events, self.tapped_events = self.tapped_events, []
+        return events
 
     def drain_telemetry(self) -> np.ndarray:
         with self._tap_lock:
@@ -142,26 +155,35 @@ def _lateness(client: _TappedClient, seconds: float, drain_period_s: float = 0.0
     }
 
 
-def _estop_latencies(client: WorkerClient, cycles: int, trigger: Any) -> tuple[np.ndarray, np.ndarray]:
+def _estop_latencies(client: _TappedClient, cycles: int, trigger: Any) -> tuple[np.ndarray, np.ndarray, int]:
     """Estop a moving session `cycles` times. Returns the latencies (ms) to the first stop set-point at the
-    HAL from `trigger()`'s call, and from `WorkerClient.emergency_stop` inside it (the worker's own figure)."""
-    latencies, from_client = [], []
+    HAL from `trigger()`'s call, and from `WorkerClient.emergency_stop` inside it (the worker's own figure),
+    and how many cycles could not be run (a session that would not start)."""
+    latencies, from_client, failed = [], [], 0
     for _ in range(cycles):
         _settle_estop(client)
         client.reset()
-        _start_session(client, 30.0)
+        try:
+            _start_session(client, 30.0)
+        except CommandRefused:
+            failed += 1
+            client.emergency_stop()
+            continue
         time.sleep(0.3)
+        client.take_events()
         called_ns = time.perf_counter_ns()
         trigger()
         deadline = time.monotonic() + 5.0
         reached: list[dict[str, Any]] = []
         while not reached and time.monotonic() < deadline:
             time.sleep(0.005)
-            reached = [e for e in client.drain_events() if e["kind"] == "estop_reached_hal"]
+            reached = [e for e in client.take_events() if e["kind"] == "estop_reached_hal"]
         if reached:
             latencies.append((reached[0]["details"]["hal_ns"] - called_ns) * 1e-6)
             from_client.append(reached[0]["details"]["latency_ms"])
-    return np.array(latencies), np.array(from_client)
+        else:
+            failed += 1
+    return np.array(latencies), np.array(from_client), failed
 
 
 def _api_under_load(client: _TappedClient, seconds: float, estop_cycles: int) -> dict[str, Any]:
@@ -221,7 +243,7 @@ def _api_under_load(client: _TappedClient, seconds: float, estop_cycles: int) ->
                 figures["stop_reason_after_run"] = client.latest_state()["stop_reason"]
                 figures["state_after_run"] = client.latest_state()["state"]
                 client.emergency_stop()
-                latencies, handler_latencies = _estop_latencies(
+                latencies, handler_latencies, failed = _estop_latencies(
                     client, estop_cycles, lambda: api.post("/api/v1/estop", headers=headers)
                 )
             finally:
@@ -231,6 +253,7 @@ def _api_under_load(client: _TappedClient, seconds: float, estop_cycles: int) ->
         engine.dispose()
     figures["estop_latency_ms_from_api"] = _percentiles(latencies)
     figures["estop_latency_ms_from_api_handler"] = _percentiles(handler_latencies)
+    figures["estop_cycles_not_run"] = failed
     return figures
 
 
@@ -244,8 +267,10 @@ def run(*, quick: bool) -> dict[str, Any]:
         _start_session(client, seconds + 30.0)
         time.sleep(3.0)
         alone = _lateness(client, seconds)
+        alone["state_after_run"] = client.latest_state()["state"]
+        alone["stop_reason_after_run"] = client.latest_state()["stop_reason"]
         client.emergency_stop()
-        client_latencies, _ = _estop_latencies(client, estop_cycles, client.emergency_stop)
+        client_latencies, _, _ = _estop_latencies(client, estop_cycles, client.emergency_stop)
         try:
             under_load: dict[str, Any] = _api_under_load(client, seconds, estop_cycles)
         except Exception as error:  # the service is another engineer's; report, do not hide the rest

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InvalidValueError
+
 TRANSLATION_AXES = ("x", "y", "z")
 ROTATION_AXES = ("roll", "pitch", "yaw")
 CUE_KINDS = ("square_wave", "step", "sine", "multisine", "gait", "perturbations", "csv_replay")
@@ -38,14 +40,8 @@ CADENCE_RANGE_STEPS_PER_MIN = (30.0, 150.0)
 CHUNK_SAMPLES = 256
 
 
-class CueSpecError(ValueError):
+class CueSpecError(InvalidValueError):
     """An invalid cue specification; names the field, the value and the limit it broke."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 # --- Field validation -----------------------------------------------------------------------------

@@ -33,6 +33,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from core.errors import InvalidValueError
+
 GRAVITY_M_S2 = 9.80665
 MAX_INTERNAL_STEP_S = 0.001  # the rope is stiff: integrate at ≤ 1 ms whatever the caller's period
 FLOOR_ANGLE_RAD = 1.2  # the body lies against the frame/floor beyond this lean
@@ -48,14 +50,8 @@ RADIUS_OF_GYRATION_FRACTION = 0.24
 ANKLE_FROM_HEEL_FRACTION = 0.25
 
 
-class ParameterError(ValueError):
+class ParameterError(InvalidValueError):
     """An invalid parameter; names the field, the value and the limit it broke."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 def require_in_range(

@@ -18,18 +18,14 @@ from typing import Any
 import numpy as np
 import tomli_w
 
+from core.errors import InvalidValueError
+
 SLIDER_COUNT = 6
 GRAVITY_M_S2 = 9.80665
 
 
-class DescriptionError(ValueError):
+class DescriptionError(InvalidValueError):
     """An invalid robot description; names the field, the value and the limit it broke."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 def _require_finite(field_name: str, values: Iterable[float] | float) -> None:

@@ -22,18 +22,14 @@ import numba
 import numpy as np
 import scipy.signal
 
+from core.errors import InvalidValueError
+
 FIRST_MODE_HZ = 9.7559  # paper §3.3.2, first natural frequency
 _FROM_REST: Any = object()  # `filter_sections` without a state argument: start from rest, return the output only
 
 
-class ParameterError(ValueError):
+class ParameterError(InvalidValueError):
     """An invalid filter or model parameter; names the field, the value and the limit it broke."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 def require_finite(field_name: str, value: Any) -> None:

@@ -7,6 +7,7 @@ and commit once, so a request either writes everything or nothing.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import functools
 import threading
@@ -101,6 +102,7 @@ def create_database_engine(url: str, **engine_options: Any) -> Engine:
 
 
 WRITE_LOCK_OPTION = "ssp_rehab_write_lock"
+SQLITE_WRITER_LOCK = "sqlite_writer_lock"
 
 
 @contextmanager
@@ -114,13 +116,17 @@ def write_transaction(session: Session) -> Iterator[Session]:
     """
     if session.in_transaction():
         session.commit()
-    session.connection(execution_options={WRITE_LOCK_OPTION: True})
-    try:
-        yield session
-        session.commit()
-    except BaseException:
-        session.rollback()
-        raise
+    # One SQLite writer at a time within this process, queued here rather than in SQLite's busy handler,
+    # whose sleep-and-retry backoff gives some writers multi-second waits under load.
+    process_lock: threading.Lock | None = session.info.get(SQLITE_WRITER_LOCK)
+    with process_lock or contextlib.nullcontext():
+        session.connection(execution_options={WRITE_LOCK_OPTION: True})
+        try:
+            yield session
+            session.commit()
+        except BaseException:
+            session.rollback()
+            raise
 
 
 def writes(function: Callable[P, R]) -> Callable[P, R]:
@@ -177,10 +183,12 @@ class Database:
         self.engine = engine
         self.dialect_name = engine.dialect.name
         self._single_connection_lock = threading.RLock() if connection is not None else None
+        writer_lock = threading.Lock() if self.dialect_name == "sqlite" and connection is None else None
         self._factory = sessionmaker(
             bind=connection if connection is not None else engine,
             expire_on_commit=False,
             join_transaction_mode="create_savepoint",
+            info={SQLITE_WRITER_LOCK: writer_lock},
         )
 
     @contextmanager

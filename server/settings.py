@@ -24,7 +24,12 @@ class Settings(BaseSettings):
     database_url: str | None = Field(default=None, description="SQLAlchemy URL; default: SQLite file in data_dir.")
     backend: Backend = Field(default="sim", description="HAL backend the real-time worker drives.")
     robot_file: Path | None = Field(default=None, description="Robot description TOML; default: the paper's twin.")
-    control_rate_hz: int = Field(default=1000, ge=100, le=4000)
+    control_rate_hz: int = Field(default=1000, ge=250, le=2000, description="Real-time loop rate (Hz).")
+    can_interface: str = Field(default="socketcan", description="python-can interface for --backend canopen.")
+    can_channel: str = Field(default="can0", description="CAN channel for --backend canopen.")
+    can_simulated_drives: int = Field(
+        default=0, ge=0, le=12, description="Simulated CiA 402 drives on the same bus (commissioning without a robot)."
+    )
     start_worker: bool = Field(default=True, description="Start the real-time worker with the service.")
 
     secret_key: SecretStr | None = Field(
@@ -48,7 +53,7 @@ class Settings(BaseSettings):
     viz_enabled: bool = Field(default=True, description="Serve the live 3D view (viser) on its own port.")
     viz_host: str = Field(default="127.0.0.1", description="Interface the 3D view listens on.")
     viz_port: int = Field(default=8081, ge=1, le=65535, description="Port of the 3D view (embedded by the web app).")
-    viz_rate_hz: float = Field(default=50.0, ge=30.0, le=120.0, description="3D view update rate.")
+    viz_rate_hz: float = Field(default=30.0, ge=30.0, le=120.0, description="3D view update rate.")
     frontend_dir: Path | None = Field(
         default=None, description="Static clinician app; default: frontend_static/ if present."
     )

@@ -201,7 +201,7 @@ export async function sessionPage(main, sessionId, cleanup) {
         events.length ? table(["Event", "Tick time", "UTC", "Detector", "Details"], events.map((e) => h("tr", { dataset: { kind: e.kind } },
           h("td", {}, h("span.event-kind", {}, e.kind.replace(/_/g, " "))), h("td.num", {}, fmt(e.tick_time_s, "s", 3)),
           h("td", {}, new Date(e.utc).toISOString().replace("T", " ").slice(0, 23)), h("td", {}, e.detector || "—"),
-          h("td", {}, Object.keys(e.details || {}).length ? JSON.stringify(e.details) : "—")))) : h("p.muted", {}, "No events."),
+          h("td.details", {}, Object.keys(e.details || {}).length ? JSON.stringify(e.details).replace(/,"/g, ", \"") : "—")))) : h("p.muted", {}, "No events."),
         h("div.row", {}, h("label", {}, "Format ", format), link,
           run.state === "ended" ? h("button.secondary", { type: "button", onclick: () => replay(run.id) }, `Replay run ${run.id} in 3D`) : null));
     }));

@@ -115,7 +115,7 @@ export async function patientPage(main, patientId) {
       metric("Date of birth", patient.date_of_birth), metric("Sex", patient.sex),
       metric("Height", fmt(patient.height_m * 100, "cm", 0)), metric("Body mass", fmt(patient.body_mass_kg, "kg", 1)),
       metric("Diagnosis", patient.diagnosis || "—"), metric("Affected side", patient.affected_side)),
-    patient.contraindications ? h("p", {}, h("strong", {}, "Contraindications: "), patient.contraindications) : null,
+    h("p", {}, h("strong", {}, "Contraindications: "), patient.contraindications || "none recorded"),
     h("h2", {}, "Prescriptions"),
     h("div.row", {}, h("a.button.primary", { href: `#/prescriptions/new?patient=${patientId}` }, "New prescription"),
       h("a.button", { href: `#/schedule?patient=${patientId}` }, "Schedule a session")),

@@ -2,8 +2,10 @@
 
 // h("tag.class#id", {attrs}, ...children): a small element builder (text children are escaped by the DOM).
 export function h(spec, attrs = {}, ...children) {
-  const [tagAndClasses, id] = spec.split("#");
-  const [tag, ...classes] = tagAndClasses.split(".");
+  // "tag.class#id" or "tag#id.class": the tag first, then any mix of .classes and one #id.
+  const tag = spec.match(/^[a-z0-9]*/i)[0];
+  const classes = [...spec.matchAll(/\.([\w-]+)/g)].map((m) => m[1]);
+  const id = (spec.match(/#([\w-]+)/) || [])[1];
   const el = document.createElement(tag || "div");
   if (classes.length) el.className = classes.join(" ");
   if (id) el.id = id;

@@ -3,42 +3,25 @@
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from server.jsonable import to_jsonable
 
 console = Console()
 error_console = Console(stderr=True)
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, np.bool_):
-        return bool(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, float | np.floating):
-        number = float(value)
-        return number if math.isfinite(number) else None
-    return value
-
-
 def emit(data: dict[str, Any], *, as_json: bool, human: Callable[[dict[str, Any]], None]) -> None:
     """Print `data` as JSON for scripts, or through `human` for people."""
     if as_json:
-        typer.echo(json.dumps(_jsonable(data), indent=2))
+        typer.echo(json.dumps(to_jsonable(data), indent=2))
     else:
         human(data)
 

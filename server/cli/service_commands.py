@@ -11,8 +11,8 @@ from pydantic import ValidationError
 
 from server.cli.output import console, emit, fail
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError
+from server.hal.backends import BACKENDS
 
-BACKENDS = ("sim", "kinematic", "canopen")
 ROLES = ("admin", "therapist")
 DATA_DIR_HELP = "Holds the SQLite database and the token key (default ./data, or SSP_REHAB_DATA_DIR)."
 
@@ -39,6 +39,11 @@ def register(app: typer.Typer) -> None:
         backend: str | None = typer.Option(None, "--backend", help="Robot backend: sim (default), kinematic, canopen."),
         robot_file: Path | None = ROBOT_OPTION,
         no_robot: bool = typer.Option(False, "--no-robot", help="Do not start the real-time worker."),
+        can_interface: str | None = typer.Option(None, "--can-interface", help="python-can interface (canopen)."),
+        can_channel: str | None = typer.Option(None, "--can-channel", help="CAN channel (canopen), e.g. can0."),
+        can_simulate: int | None = typer.Option(
+            None, "--can-simulate", help="Simulated CiA 402 drives on that bus (canopen, commissioning)."
+        ),
     ) -> None:
         """Run the therapist console: REST API, telemetry WebSocket, web app at / and OpenAPI at /docs."""
         import uvicorn
@@ -49,7 +54,13 @@ def register(app: typer.Typer) -> None:
             raise fail(f"--backend = {backend!r}: must be one of {', '.join(BACKENDS)}")
         try:
             settings = _settings(
-                data_dir=data_dir, backend=backend, robot_file=robot_file, start_worker=False if no_robot else None
+                data_dir=data_dir,
+                backend=backend,
+                robot_file=robot_file,
+                start_worker=False if no_robot else None,
+                can_interface=can_interface,
+                can_channel=can_channel,
+                can_simulated_drives=can_simulate,
             )
             application = create_app(settings)
         except ValidationError as error:

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InvalidValueError
 from server.hal.base import AXIS_COUNT, FEET
 
 SLIDER_LABELS = tuple(f"{foot}_{slider}" for foot in FEET for slider in range(1, AXIS_COUNT // len(FEET) + 1))
@@ -95,14 +96,8 @@ NAME_SUFFIX_UNITS = (
 SAMPLE_RATE_TOLERANCE = 0.02
 
 
-class SessionLogError(ValueError):
+class SessionLogError(InvalidValueError):
     """A session log or export request refused; names the field (column), the value and the limit."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 @dataclass(frozen=True)

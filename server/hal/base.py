@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.errors import InvalidValueError
 from core.robot import TwinRobot
 
 AXIS_COUNT = 12
@@ -55,14 +56,8 @@ class HalError(RuntimeError):
     """A lifecycle call made in the wrong state, or a backend failure."""
 
 
-class CommandRejectedError(ValueError):
+class CommandRejectedError(InvalidValueError):
     """A command refused before reaching any drive; names the axis field, the value and the limit."""
-
-    def __init__(self, field_name: str, value: float, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 @dataclass

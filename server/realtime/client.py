@@ -10,23 +10,30 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import logging
 import multiprocessing
+import os
 import threading
 import time
 from typing import Any
 
 import numpy as np
 
+from server.hal.backends import BACKENDS
 from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, validate_control_rate
 from server.realtime.prescription import PrescriptionError, PrescriptionRejected
 from server.realtime.shm import ControlBlock, Seqlock, SharedRing
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict
-from server.realtime.worker import BACKENDS, WorkerConfig, worker_entry
+from server.realtime.worker import WorkerConfig, worker_entry
 
 HEARTBEAT_PERIOD_S = 0.02  # five heartbeats per 100 ms watchdog window
+HEARTBEAT_FIFO_PRIORITY = 10  # below the worker's loop (80)
 TELEMETRY_CAPACITY = 1 << 15  # 32 s at 1 kHz between drains
 EVENTS_CAPACITY = 1 << 10
+
+
+log = logging.getLogger("ssp_rehab.realtime")
 
 
 class WorkerError(RuntimeError):
@@ -102,10 +109,14 @@ class WorkerClient:
         self._heartbeat_thread.start()
         deadline = time.monotonic() + timeout_s
         while not int(self.control.fields["worker_ready"][0]):
+            failure = None
             if not self.process.is_alive():
-                raise WorkerError(f"the worker exited during start-up (exit code {self.process.exitcode})")
-            if time.monotonic() > deadline:
-                raise WorkerError(f"the worker did not start within {timeout_s} s")
+                failure = f"the worker exited during start-up (exit code {self.process.exitcode})"
+            elif time.monotonic() > deadline:
+                failure = f"the worker did not start within {timeout_s} s"
+            if failure is not None:
+                self.shutdown(timeout_s=5.0)  # frees the shared memory and the pipes
+                raise WorkerError(failure)
             time.sleep(0.01)
 
     @property
@@ -216,6 +227,12 @@ class WorkerClient:
             raise _error_from_reply(result)
 
     def _send_heartbeats(self) -> None:
+        # A busy service must not starve this thread past the 100 ms watchdog: ask for a real-time
+        # priority for this thread only (Linux applies sched_setscheduler(0, …) to the calling thread).
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(HEARTBEAT_FIFO_PRIORITY))
+        except (OSError, AttributeError) as error:
+            log.info("heartbeat thread runs without real-time priority: %s", error)
         while not self._stop_heartbeat.wait(self.heartbeat_period_s):
             try:
                 with self._send_lock:

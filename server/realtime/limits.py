@@ -14,13 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InvalidValueError
 from core.robot import MotionLimits, TwinRobot
 
 
-class LimitOverrideError(ValueError):
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field, self.value, self.limit = field_name, value, limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
+class LimitOverrideError(InvalidValueError):
+    """A prescription limit override that would loosen or break a robot limit."""
 
 
 @dataclass(frozen=True)

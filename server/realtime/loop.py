@@ -14,16 +14,16 @@ import os
 import time
 from dataclasses import dataclass, field
 
+from core.errors import InvalidValueError
+
 CONTROL_RATE_RANGE_HZ = (250, 2000)
 DEFAULT_CONTROL_RATE_HZ = 1000
 LATE_THRESHOLD_NS = 500_000  # a tick that starts more than 500 µs after its deadline counts as late
 _PR_SET_TIMERSLACK = 29
 
 
-class LoopConfigError(ValueError):
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field, self.value, self.limit = field_name, value, limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
+class LoopConfigError(InvalidValueError):
+    """An invalid control-loop setting."""
 
 
 def validate_control_rate(control_rate_hz: object) -> int:

@@ -19,6 +19,7 @@ import numpy as np
 
 from core.cues import CueSpecError, cue_from_spec
 from core.dynamics import PayloadModel, TwinInverseDynamics
+from core.errors import InvalidValueError
 from core.falls import FallDetectorConfig
 from core.kinematics import LegViolation, twin_inverse_kinematics
 from core.patient import PatientParameters
@@ -35,12 +36,8 @@ SEGMENT_COUNT_MAX = 100
 SEGMENT_DURATION_MAX_S = 3600.0
 
 
-class PrescriptionError(ValueError):
+class PrescriptionError(InvalidValueError):
     """A malformed prescription or patient; names the field, the value and the rule it broke."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field, self.value, self.limit = field_name, value, limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 class PrescriptionRejected(ValueError):  # noqa: N818 — the agreed interface name

@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from core.errors import InvalidValueError
 from server.realtime.telemetry import StopReason, SupervisorState
 
 MOTION_STATES = (SupervisorState.RUNNING, SupervisorState.PAUSED, SupervisorState.STOPPING)
@@ -46,10 +47,8 @@ class TransitionRefused(RuntimeError):  # noqa: N818 — a refusal, not a malfun
         super().__init__(f"{command}: not accepted in state {state.label}" + (f" ({reason})" if reason else ""))
 
 
-class SupervisorConfigError(ValueError):
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field, self.value, self.limit = field_name, value, limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
+class SupervisorConfigError(InvalidValueError):
+    """An invalid safety-supervisor setting."""
 
 
 @dataclass(frozen=True)

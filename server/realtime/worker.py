@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
-from core.robot import TwinRobot, default_twin, load_twin
-from server.hal.base import HardwareInterface
+from core.robot import default_twin, load_twin
+from server.hal.backends import make_hal
 from server.realtime.loop import FixedRateLoop, configure_realtime, freeze_garbage_collector
 from server.realtime.pipeline import TickPipeline
 from server.realtime.prescription import (
@@ -35,7 +35,6 @@ from server.realtime.shm import ControlBlock, Seqlock, SharedRing
 from server.realtime.supervisor import SupervisorConfig, TransitionRefused
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, StopReason, SupervisorState, encode_event
 
-BACKENDS = ("kinematic", "sim")
 LOAD_STATES = (SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
 COMMANDS_PER_TICK = 4
 IDLE_COLLECT_PERIOD_S = 10.0
@@ -57,19 +56,6 @@ class WorkerConfig:
     events_capacity: int
     cpu: int | None = None
     hal_options: dict[str, Any] = field(default_factory=dict)
-
-
-def make_hal(backend: str, twin: TwinRobot, control_period_s: float, **options: Any) -> HardwareInterface:
-    """The HAL backend by name; the kinematic one is ideal, the sim one is MuJoCo physics."""
-    if backend == "kinematic":
-        from server.hal.kinematic import KinematicHal
-
-        return KinematicHal(twin, control_period_s, **options)
-    if backend == "sim":
-        from server.hal.sim import SimHal
-
-        return SimHal(twin, control_period_s, **options)
-    raise ValueError(f"backend = {backend!r}: must be one of {list(BACKENDS)}")
 
 
 class Worker:

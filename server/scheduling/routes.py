@@ -40,7 +40,7 @@ def list_sessions(
         limit=limit,
         offset=offset,
     )
-    return [service.to_out(booking, version) for booking, version in rows]
+    return [service.to_out(*row) for row in rows]
 
 
 @router.post(

@@ -37,13 +37,13 @@ class Slot:
     end: dt.datetime
 
 
-def to_out(booking: ScheduledSession, version: PrescriptionVersion) -> ScheduledSessionOut:
+def to_out(booking: ScheduledSession, prescription_id: int, version: int) -> ScheduledSessionOut:
     return ScheduledSessionOut(
         id=booking.id,
         patient_id=booking.patient_id,
-        prescription_id=version.prescription_id,
-        prescription_version=version.version,
-        prescription_version_id=version.id,
+        prescription_id=prescription_id,
+        prescription_version=version,
+        prescription_version_id=booking.prescription_version_id,
         robot=booking.robot,
         therapist_id=booking.therapist_id,
         start=booking.start_utc,
@@ -58,7 +58,7 @@ def to_out(booking: ScheduledSession, version: PrescriptionVersion) -> Scheduled
 def booking_out(*, session: Session, booking: ScheduledSession) -> ScheduledSessionOut:
     version = session.get(PrescriptionVersion, booking.prescription_version_id)
     assert version is not None  # a foreign key guarantees it
-    return to_out(booking, version)
+    return to_out(booking, version.prescription_id, version.version)
 
 
 def get_booking(*, session: Session, session_id: int) -> ScheduledSession:
@@ -261,10 +261,11 @@ def list_bookings(
     status: str | None = None,
     limit: int = 100,
     offset: int = 0,
-) -> list[tuple[ScheduledSession, PrescriptionVersion]]:
-    """Bookings overlapping [start, end), earliest first, with their prescription versions."""
+) -> list[tuple[ScheduledSession, int, int]]:
+    """Bookings overlapping [start, end), earliest first, with their prescription id and version number."""
     query = (
-        select(ScheduledSession, PrescriptionVersion)
+        # Only the version's numbers: its content (JSON) is not needed to list bookings.
+        select(ScheduledSession, PrescriptionVersion.prescription_id, PrescriptionVersion.version)
         .join(PrescriptionVersion, PrescriptionVersion.id == ScheduledSession.prescription_version_id)
         .order_by(ScheduledSession.start_utc, ScheduledSession.id)
         .limit(limit)
@@ -282,7 +283,9 @@ def list_bookings(
     ):
         if value is not None:
             query = query.where(column == value)
-    return [(booking, version) for booking, version in session.execute(query).tuples()]
+    return [
+        (booking, prescription_id, version) for booking, prescription_id, version in session.execute(query).tuples()
+    ]
 
 
 def therapist_calendar(*, session: Session, therapist_id: int, product_id: str) -> bytes:

@@ -4,8 +4,9 @@ telemetry records in chunks (one `.npy` blob each, so they carry their own dtype
 
 It is the only consumer of `drain_telemetry()`/`drain_events()`, and it reads `latest_state()` once per
 frame whatever the number of WebSocket clients, so watching a session never adds load to the worker.
-A run ends when the worker reports a terminal event (fall, emergency stop, fault, limit hit, completed)
-or the therapist stops it; recording continues for `tail_s` afterwards to keep the aftermath.
+A run ends when the worker reports a terminal event (fall, emergency stop, fault, limit hit, completion,
+or a controlled stop with its reason) or the therapist stops it; recording continues for `tail_s`
+afterwards to keep the aftermath.
 """
 
 from __future__ import annotations
@@ -22,8 +23,8 @@ from typing import Any
 import numpy as np
 from sqlalchemy import select
 
-from server.cli.output import _jsonable
 from server.db import Database, write_transaction
+from server.jsonable import to_jsonable
 from server.scheduling.models import ScheduledSession
 from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
 from server.sessions.service import ACTIVE_STATES
@@ -31,23 +32,24 @@ from server.sessions.worker import WorkerControl
 
 logger = logging.getLogger(__name__)
 
-# Worker event kinds that end a run, and the outcome recorded for each.
-# (Kinds follow the worker's StopReason labels in server/realtime/telemetry.py, plus common synonyms.)
+# Worker event kinds that end a run, and the outcome recorded for each (server/realtime: supervisor and
+# pipeline events). A controlled stop carries its StopReason; the first terminal event of a run wins.
 TERMINAL_EVENT_OUTCOMES = {
     "fall": "fall",
     "emergency_stop": "emergency_stop",
-    "estop": "emergency_stop",
-    "limit": "limit_hit",
     "limit_hit": "limit_hit",
     "fault": "fault",
-    "hal_fault": "fault",
-    "tracking_error": "fault",
-    "late_ticks": "fault",
-    "internal_error": "fault",
-    "watchdog": "fault",
-    "service_lost": "fault",
-    "completed": "completed",
+    "prescription_completed": "completed",
 }
+STOP_REASON_OUTCOMES = {"operator": "stopped", "completed": "completed", "limit": "limit_hit", "fall": "fall",
+                        "emergency_stop": "emergency_stop"}  # fmt: skip
+
+
+def terminal_outcome_of(kind: str, details: dict[str, Any]) -> str | None:
+    """The run outcome a worker event implies, or None if the run goes on."""
+    if kind == "controlled_stop":
+        return STOP_REASON_OUTCOMES.get(str(details.get("reason")), "fault")
+    return TERMINAL_EVENT_OUTCOMES.get(kind)
 
 
 def event_utc(value: Any) -> dt.datetime:
@@ -164,7 +166,7 @@ class SessionRecorder:
             "sample": latest_sample,
             "events": events,
         }
-        return json.dumps(_jsonable(frame))
+        return json.dumps(to_jsonable(frame))
 
     def flush(self) -> None:
         with self._lock:
@@ -205,10 +207,10 @@ class SessionRecorder:
                         tick_time_s=float(event["tick_time_s"]) if event.get("tick_time_s") is not None else None,
                         utc=event_utc(event.get("utc")),
                         detector=str(event["detector"])[:64] if event.get("detector") else None,
-                        details=_jsonable(event.get("details") or {}),
+                        details=to_jsonable(event.get("details") or {}),
                     )
                 )
-                terminal_outcome = terminal_outcome or TERMINAL_EVENT_OUTCOMES.get(kind)
+                terminal_outcome = terminal_outcome or terminal_outcome_of(kind, event.get("details") or {})
             if run_id is not None and terminal_outcome is not None:
                 self._end_run(session, run_id, terminal_outcome)
         if terminal_outcome is not None:
@@ -248,10 +250,15 @@ class SessionRecorder:
 
     async def run_forever(self) -> None:
         loop = asyncio.get_running_loop()
+        next_frame = loop.time()
         while True:
-            started = loop.time()
             try:
                 self.broadcast(await asyncio.to_thread(self.pump))
             except Exception:
                 logger.exception("session recorder: one frame failed")
-            await asyncio.sleep(max(0.0, self.frame_period_s - (loop.time() - started)))
+            # Absolute frame times, so that sleep overshoot does not add up and lower the frame rate;
+            # after falling more than a frame behind, restart the schedule rather than burst.
+            next_frame += self.frame_period_s
+            if next_frame < loop.time() - self.frame_period_s:
+                next_frame = loop.time()
+            await asyncio.sleep(max(0.0, next_frame - loop.time()))

@@ -37,9 +37,9 @@ from server.auth.dependencies import (
     user_for_claims,
 )
 from server.auth.security import TokenClaims
-from server.cli.output import _jsonable
 from server.db import Database, SessionDep, writes
 from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
+from server.jsonable import to_jsonable
 from server.scheduling.service import get_booking
 from server.sessions import logs, service
 from server.sessions.models import SessionRun
@@ -135,7 +135,7 @@ for _command in ("pause", "resume", "stop"):
 @router.get("/robot/state", responses={503: {"description": "No robot"}})
 def robot_state(worker: WorkerDep) -> dict[str, Any]:
     """The worker's latest state: supervisor state, stance pose, slider positions, drive forces, tick stats."""
-    state: dict[str, Any] = _jsonable(worker.latest_state())
+    state: dict[str, Any] = to_jsonable(worker.latest_state())
     return state
 
 

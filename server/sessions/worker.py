@@ -58,8 +58,20 @@ def start_worker(settings: Settings) -> WorkerControl | None:
         logger.warning("no real-time worker is installed (server.realtime): running without a robot")
         return None
     try:
+        hal_options = (
+            {
+                "interface": settings.can_interface,
+                "channel": settings.can_channel,
+                "simulate": settings.can_simulated_drives,
+            }
+            if settings.backend == "canopen"
+            else {}
+        )
         worker: WorkerControl = client_class(
-            str(settings.robot_file) if settings.robot_file else None, settings.backend, settings.control_rate_hz
+            str(settings.robot_file) if settings.robot_file else None,
+            settings.backend,
+            settings.control_rate_hz,
+            hal_options=hal_options,
         )
         worker.start()
     except Exception:

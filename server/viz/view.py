@@ -22,7 +22,7 @@ from server.viz.scene import TwinScene
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_RATE_HZ = 50.0
+DEFAULT_RATE_HZ = 30.0
 MIN_RATE_HZ = 30.0  # issue 7: the view follows the robot at 30 Hz or more
 
 
@@ -112,7 +112,9 @@ class LiveView:
         self.server = viser.ViserServer(
             host=self.host, port=self.requested_port, label="ssp-rehab 3D view", verbose=False
         )
-        self.server.gui.configure_theme(control_layout="collapsible", show_logo=False, show_share_button=False)
+        self.server.gui.configure_theme(
+            control_layout="floating", control_width="small", show_logo=False, show_share_button=False
+        )
         self.server.initial_camera.position = (3.4, -3.4, 2.4)
         self.server.initial_camera.look_at = (0.0, 0.0, 0.6)
         self.scene = TwinScene(self.server, self.twin)

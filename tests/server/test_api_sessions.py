@@ -13,6 +13,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from server.db import Database
+from server.sessions.recorder import terminal_outcome_of
 from tests.server.conftest import PATIENT, Booked, FakeWorker, Seed, booked_session, wait_until
 
 
@@ -179,6 +180,7 @@ def recorded_run(client: TestClient, seed: Seed, worker: FakeWorker, **patient: 
     run = start(client, seed, booked)
     worker.produce(300)
     worker.emit_event("limit_hit", limit="tilt_max_rad")
+    worker.emit_event("controlled_stop", reason="limit")
     wait_until(lambda: client.get(f"/api/v1/runs/{run['id']}", headers=seed.headers()).json()["sample_count"] == 300)
     return booked, run
 
@@ -258,3 +260,32 @@ def test_bulk_export_selects_runs_by_date_and_diagnosis(
         "/api/v1/exports/bulk", params={"from_date": str(today), "to_date": yesterday}, headers=seed.headers()
     )
     assert backwards.status_code == 422
+
+
+@pytest.mark.parametrize(
+    ("kind", "details", "outcome"),
+    [
+        ("fall", {}, "fall"),
+        ("limit_hit", {"limit": "tilt"}, "limit_hit"),
+        ("controlled_stop", {"reason": "operator"}, "stopped"),
+        ("controlled_stop", {"reason": "watchdog"}, "fault"),
+        ("prescription_completed", {}, "completed"),
+        ("state", {"to": "paused"}, None),
+    ],
+)
+def test_worker_events_decide_the_run_outcome(kind: str, details: dict, outcome: str | None) -> None:
+    assert terminal_outcome_of(kind, details) == outcome
+
+
+def test_a_completed_prescription_completes_the_booking(
+    robot_client: TestClient, seed: Seed, fake_worker: FakeWorker
+) -> None:
+    booked = booked_session(robot_client, seed.headers())
+    run = start(robot_client, seed, booked)
+    fake_worker.produce(100)
+    fake_worker.emit_event("prescription_completed")
+    fake_worker.emit_event("controlled_stop", reason="completed")
+    wait_until(lambda: robot_client.get(f"/api/v1/runs/{run['id']}", headers=seed.headers()).json()["state"] == "ended")
+    assert robot_client.get(f"/api/v1/runs/{run['id']}", headers=seed.headers()).json()["outcome"] == "completed"
+    booking = robot_client.get(f"/api/v1/sessions/{booked.session_id}", headers=seed.headers()).json()
+    assert booking["status"] == "completed"

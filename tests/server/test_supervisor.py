@@ -11,7 +11,7 @@ import pytest
 
 from core.kinematics import twin_inverse_kinematics
 from core.robot import TwinRobot
-from server.hal.base import DriveState, HalState
+from server.hal.base import DriveState, HalState, HardwareInterface
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
 from server.realtime.prescription import plan_prescription
@@ -29,9 +29,11 @@ SINE = {"kind": "sine", "axis": "y", "amplitude_m_s2": 1.5, "frequency_hz": 1.0}
 class Harness:
     """A pipeline on an ideal HAL, ticked as fast as Python goes; records every command sent."""
 
-    def __init__(self, twin: TwinRobot, config: SupervisorConfig = FAST, **hal_options: Any) -> None:
+    def __init__(
+        self, twin: TwinRobot, config: SupervisorConfig = FAST, hal: HardwareInterface | None = None, **hal_options: Any
+    ) -> None:
         hal_options.setdefault("communication_timeout_s", 30.0)  # ticks here are not paced in real time
-        self.hal = KinematicHal(twin, 1.0 / RATE_HZ, **hal_options)
+        self.hal: Any = hal or KinematicHal(twin, 1.0 / RATE_HZ, **hal_options)
         self.hal.configure()
         self.hal.home()
         self.events: list[tuple[str, dict[str, Any], str | None]] = []
@@ -206,6 +208,26 @@ def test_estop_while_running_reaches_standstill_within_the_ramp_with_bounded_jer
     assert jerk < 1.5 * ramp.peak_jerk().max() + 1.0  # bounded by the ramp's own jerk: no step at the switch
     latency = [d for k, d, _ in harness.events if k == "estop_reached_hal"]
     assert latency and latency[0]["action"] == "first stop set-point"
+
+
+@pytest.mark.slow
+def test_estop_while_running_in_the_sim_comes_to_a_standstill_within_the_ramp(twin: TwinRobot) -> None:
+    from server.hal.sim import SimHal
+
+    harness = Harness(twin, hal=SimHal(twin, 1.0 / RATE_HZ))
+    harness.load(duration_s=5.0)
+    harness.pipeline.start()
+    harness.run(1500)
+    assert harness.state is S.RUNNING
+    assert np.abs(harness.pipeline.reading.velocities_m_s).max() > 0.01  # the physics really moves
+    harness.pipeline.emergency_stop()
+    ramp_ticks = round(harness.pipeline.config.estop_ramp_s * RATE_HZ)
+    harness.run(ramp_ticks - 2)
+    assert harness.hal.state is HalState.ACTIVE  # still ramping down under control
+    harness.run(3)
+    assert harness.hal.state is HalState.ESTOP and harness.state is S.ESTOP
+    assert np.abs(harness.pipeline.reading.velocities_m_s).max() < 0.005  # standstill at the ramp's end
+    assert set(harness.pipeline.reading.drive_states) <= {DriveState.SWITCH_ON_DISABLED, DriveState.QUICK_STOP_ACTIVE}
 
 
 def test_watchdog_stops_motion_after_100_ms_without_heartbeat(harness: Harness) -> None:

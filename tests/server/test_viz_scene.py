@@ -112,6 +112,9 @@ class RecordingServer:
         self.in_atomic = False
         self.scene = RecordingScene(self)
 
+    def get_port(self) -> int:
+        return 8081
+
     @contextlib.contextmanager
     def atomic(self) -> Any:
         self.in_atomic = True

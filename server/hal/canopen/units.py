@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from core.errors import InvalidValueError
 from core.robot import TwinRobot
 from server.hal.base import AXIS_COUNT, HalError, HardwareInterface
 
@@ -28,14 +29,8 @@ DEFAULT_CONFIGURATION_PATH = Path(__file__).with_name("drives.toml")
 INT32_MAX = 2**31 - 1
 
 
-class DriveConfigurationError(HalError):
+class DriveConfigurationError(HalError, InvalidValueError):
     """A drive configuration, EDS or drive answer that forbids motion; names field, value and limit."""
-
-    def __init__(self, field_name: str, value: object, limit: str) -> None:
-        self.field = field_name
-        self.value = value
-        self.limit = limit
-        super().__init__(f"{field_name} = {value!r}: {limit}")
 
 
 @dataclass(frozen=True)
