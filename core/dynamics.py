@@ -32,6 +32,7 @@ import numpy as np
 
 from core.kinematics import _as_poses, euler_from_rotation, rotation_matrices, stance_origin_world
 from core.robot import GRAVITY_M_S2, DescriptionError, SSPRobot, TwinRobot
+from core.rotations import rotation_into
 
 # Anthropometry for a standing adult, as fractions of body height. Centre of mass at 0.55·H above the soles
 # (Winter, "Biomechanics and Motor Control of Human Movement", 4th ed., segment tables); whole-body radii of
@@ -138,18 +139,9 @@ def _euler_motion(
     alpha: np.ndarray,
 ) -> None:
     """R = Rx·Ry·Rz, ω = E·η̇ and α = E·η̈ + Ė·η̇ (base frame) for Euler angles η = (roll, pitch, yaw)."""
+    rotation_into(pose[3], pose[4], pose[5], rotation)
     ca, sa = np.cos(pose[3]), np.sin(pose[3])
     cb, sb = np.cos(pose[4]), np.sin(pose[4])
-    cc, sc = np.cos(pose[5]), np.sin(pose[5])
-    rotation[0, 0] = cb * cc
-    rotation[0, 1] = -cb * sc
-    rotation[0, 2] = sb
-    rotation[1, 0] = ca * sc + sa * sb * cc
-    rotation[1, 1] = ca * cc - sa * sb * sc
-    rotation[1, 2] = -sa * cb
-    rotation[2, 0] = sa * sc - ca * sb * cc
-    rotation[2, 1] = sa * cc + ca * sb * sc
-    rotation[2, 2] = ca * cb
     droll, dpitch, dyaw = pose_rate[3], pose_rate[4], pose_rate[5]
     ddroll, ddpitch, ddyaw = pose_acceleration[3], pose_acceleration[4], pose_acceleration[5]
     omega[0] = droll + sb * dyaw

@@ -20,6 +20,7 @@ import numba
 import numpy as np
 
 from core.robot import SSPRobot, TwinRobot
+from core.rotations import rotation_into
 
 
 class LegViolation(enum.IntFlag):
@@ -661,15 +662,16 @@ def _fk_residual_and_jacobian(
     rod_length: float,
     residual: np.ndarray,
     jacobian: np.ndarray,
+    rotation: np.ndarray,
 ) -> tuple[float, float]:
     """IK(pose) − sliders into `residual` and the pose Jacobian into `jacobian`; returns (max |r|, |r|²),
     both inf when a rod cannot reach its rail at `pose`."""
+    rotation_into(pose[3], pose[4], pose[5], rotation)
+    r00, r01, r02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
+    r10, r11, r12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
+    r20, r21, r22 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
     ca, sa = np.cos(pose[3]), np.sin(pose[3])
     cb, sb = np.cos(pose[4]), np.sin(pose[4])
-    cc, sc = np.cos(pose[5]), np.sin(pose[5])
-    r00, r01, r02 = cb * cc, -cb * sc, sb
-    r10, r11, r12 = ca * sc + sa * sb * cc, ca * cc - sa * sb * sc, -sa * cb
-    r20, r21, r22 = sa * sc - ca * sb * cc, sa * cc + ca * sb * sc, ca * cb
     max_residual = 0.0
     squared_norm = 0.0
     for leg in range(6):
@@ -725,8 +727,9 @@ def _fk_newton_steps(
     trial = np.empty(6)
     residual = np.empty(6)
     jacobian = np.empty((6, 6))
+    rotation = np.empty((3, 3))
     max_residual, squared_norm = _fk_residual_and_jacobian(
-        pose, sliders, joints, rail_y, rail_z, sides, rod_length, residual, jacobian
+        pose, sliders, joints, rail_y, rail_z, sides, rod_length, residual, jacobian, rotation
     )
     iteration = 0
     while max_residual > tolerance:
@@ -739,7 +742,7 @@ def _fk_newton_steps(
         for _ in range(_FK_MAX_HALVINGS + 1):
             trial[:] = pose - scale * step
             trial_max, trial_norm = _fk_residual_and_jacobian(
-                trial, sliders, joints, rail_y, rail_z, sides, rod_length, residual, jacobian
+                trial, sliders, joints, rail_y, rail_z, sides, rod_length, residual, jacobian, rotation
             )
             if trial_norm < squared_norm:
                 break
@@ -777,7 +780,7 @@ def _fk_newton(
     start_sliders = np.empty(6)
     jacobian = np.empty((6, 6))
     start_residual, _ = _fk_residual_and_jacobian(
-        guess, np.zeros(6), joints, rail_y, rail_z, sides, rod_length, start_sliders, jacobian
+        guess, np.zeros(6), joints, rail_y, rail_z, sides, rod_length, start_sliders, jacobian, np.empty((3, 3))
     )
     if not np.isfinite(start_residual):  # the guess itself is impossible
         pose_out[:] = guess
@@ -809,7 +812,10 @@ def _same_assembly_mode(
 ) -> bool:
     residual = np.empty(6)
     jacobian = np.empty((6, 6))
-    _fk_residual_and_jacobian(pose, np.zeros(6), joints, rail_y, rail_z, sides, rod_length, residual, jacobian)
+    rotation = np.empty((3, 3))
+    _fk_residual_and_jacobian(
+        pose, np.zeros(6), joints, rail_y, rail_z, sides, rod_length, residual, jacobian, rotation
+    )
     return bool(np.sign(np.linalg.det(jacobian)) == det_sign)
 
 

@@ -19,6 +19,7 @@ import numpy as np
 import tomli_w
 
 from core.errors import InvalidValueError
+from core.rotations import rotation_matrix
 
 SLIDER_COUNT = 6
 GRAVITY_M_S2 = 9.80665
@@ -184,20 +185,6 @@ class SSPRobot:
         )
         x, y, z, roll, pitch, yaw = self.neutral_pose
         return replace(self, sliders=sliders, neutral_pose=(x, -y, z, -roll, pitch, -yaw))
-
-
-def rotation_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R = Rx(roll)·Ry(pitch)·Rz(yaw): Formula (9), with its element (2,3) typo corrected to -cβ·sα."""
-    ca, sa = math.cos(roll), math.sin(roll)
-    cb, sb = math.cos(pitch), math.sin(pitch)
-    cc, sc = math.cos(yaw), math.sin(yaw)
-    return np.array(
-        [
-            [cb * cc, -cb * sc, sb],
-            [ca * sc + sa * sb * cc, ca * cc - sa * sb * sc, -sa * cb],
-            [sa * sc - ca * sb * cc, sa * cc + ca * sb * sc, ca * cb],
-        ]
-    )
 
 
 def _paper_sliders() -> tuple[Slider, ...]:

@@ -416,10 +416,13 @@ class TickPipeline:
         """Drives on; the motion state starts from where the platform actually is (FK of the sliders)."""
         self.hal.activate()
         self.hal.read(self.reading)
-        self.previous_sliders[:] = self.reading.positions_m
-        self.previous_slider_velocity[:] = 0.0
         self.kernels.measured_stance_pose(self.reading.positions_m[:6], self.measured_stance)
         self.pose[:] = self.measured_stance
+        # The slider-rate limits difference the commanded sliders, so they start from the command of this
+        # pose: the left robot's measured sliders differ from it by tracking error (microns, but at 1 kHz a
+        # micron of mismatch reads as 1 m/s² of acceleration). The FK monitor watches that error instead.
+        self.kernels.sliders_for(self.pose, self.previous_sliders)
+        self.previous_slider_velocity[:] = 0.0
         self.velocity[:] = 0.0
         self.acceleration[:] = 0.0
         self._use_limits(self.plan.segments[0].motion_limits if self.plan else self.default_limits)

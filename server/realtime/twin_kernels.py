@@ -22,26 +22,11 @@ from core.kinematics import (
     stance_origin_world,
 )
 from core.robot import TwinRobot
+from core.rotations import rotation_into
 from server.realtime.telemetry import LimitCode
 
 # Row layout of the (4,) violation output: code, axis (0..11, −1 for the whole body), value, limit.
 VIOLATION_FIELDS = 4
-
-
-@numba.njit(cache=True)
-def _rotation(roll: float, pitch: float, yaw: float, out: np.ndarray) -> None:
-    ca, sa = math.cos(roll), math.sin(roll)
-    cb, sb = math.cos(pitch), math.sin(pitch)
-    cc, sc = math.cos(yaw), math.sin(yaw)
-    out[0, 0] = cb * cc
-    out[0, 1] = -cb * sc
-    out[0, 2] = sb
-    out[1, 0] = ca * sc + sa * sb * cc
-    out[1, 1] = ca * cc - sa * sb * sc
-    out[1, 2] = -sa * cb
-    out[2, 0] = sa * sc - ca * sb * cc
-    out[2, 1] = sa * cc + ca * sb * sc
-    out[2, 2] = ca * cb
 
 
 @numba.njit(cache=True)
@@ -83,7 +68,7 @@ def twin_command_kernel(
     stance_rotation = scratch[0]
     world_rotation = scratch[1]
     platform_rotation = scratch[2]
-    _rotation(stance_pose[3], stance_pose[4], stance_pose[5], stance_rotation)
+    rotation_into(stance_pose[3], stance_pose[4], stance_pose[5], stance_rotation)
     tilt = math.acos(min(1.0, max(-1.0, math.cos(stance_pose[3]) * math.cos(stance_pose[4]))))
     if tilt > limits[2]:
         _set_violation(violation, 5, -1, tilt, limits[2])
@@ -170,7 +155,7 @@ def stance_from_platform_kernel(
     """Invert the stance → platform map: R_s = Y·R_p·N_wᵀ, t = Y·p + o_b − o_s − R_s·lever."""
     platform_rotation = scratch[0]
     stance_rotation = scratch[1]
-    _rotation(platform_pose[3], platform_pose[4], platform_pose[5], platform_rotation)
+    rotation_into(platform_pose[3], platform_pose[4], platform_pose[5], platform_rotation)
     for i in range(3):
         for j in range(3):
             total = 0.0
@@ -314,24 +299,27 @@ class TwinKernels:
             raise ForwardKinematicsError(abs(iterations), residual)
         return iterations
 
-    def neutral_sliders(self) -> np.ndarray:
-        """The twelve slider positions at the neutral stance."""
-        sliders, scratch_velocity, scratch_acceleration = np.zeros(12), np.zeros(12), np.zeros(12)
+    def sliders_for(self, stance_pose: np.ndarray, sliders_out: np.ndarray) -> np.ndarray:
+        """The twelve slider positions of a stance pose, without limit checks (for start-up states)."""
+        scratch_velocity, scratch_acceleration = np.zeros(12), np.zeros(12)
         violation = np.zeros(VIOLATION_FIELDS)
-        no_limits = np.full(6, np.inf)
         self.command(
-            np.zeros(6),
-            sliders,
-            sliders,
+            stance_pose,
+            sliders_out,
+            scratch_velocity,
             np.full(12, -np.inf),
             np.full(12, np.inf),
-            no_limits,
-            sliders,
+            np.full(6, np.inf),
+            sliders_out,
             scratch_velocity,
             scratch_acceleration,
             violation,
         )
-        return sliders
+        return sliders_out
+
+    def neutral_sliders(self) -> np.ndarray:
+        """The twelve slider positions at the neutral stance."""
+        return self.sliders_for(np.zeros(6), np.zeros(12))
 
 
 assert LimitCode.TILT == 5 and LimitCode.SLIDER_VELOCITY == 6 and LimitCode.SLIDER_ACCELERATION == 7

@@ -139,10 +139,16 @@ def robot_state(worker: WorkerDep) -> dict[str, Any]:
     return state
 
 
-@router.post("/robot/reset", responses={503: {"description": "No robot"}})
+@router.post(
+    "/robot/reset",
+    responses={503: {"description": "No robot"}, 409: {"description": "Nothing to reset (not stopped or faulted)"}},
+)
 def reset_robot(session: SessionDep, user: CurrentUser, worker: WorkerDep) -> dict[str, str]:
     """Clears a latched emergency stop or fault. Never restarts motion."""
-    worker.reset()
+    try:
+        worker.reset()
+    except Exception as error:  # the worker's refusal (e.g. reset while idle) is the client's conflict
+        raise service.refused(error) from error
     service.record_robot_command(session=session, user_id=user.id, command="reset", worker=worker)
     return {"status": "reset sent to the robot"}
 

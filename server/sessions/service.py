@@ -102,7 +102,7 @@ def add_event(
     return event
 
 
-def _refused(error: Exception) -> Exception:
+def refused(error: Exception) -> Exception:
     """A worker refusal as a client error: a prescription over a limit (PrescriptionRejected) or an invalid
     prescription (PrescriptionError: field, value, limit) is bad input; anything else is a conflict."""
     segment, limit = getattr(error, "segment", None), getattr(error, "limit", None)
@@ -138,7 +138,7 @@ def start_run(
         logger.warning("worker refused to start session %d: %s", session_id, type(error).__name__)
         if recorder is not None:
             recorder.abandon_run()
-        raise _refused(error) from error
+        raise refused(error) from error
     try:
         run = _record_start(
             session=session,
@@ -224,7 +224,7 @@ def control_run(
         getattr(worker, command)()
     except Exception as error:
         session.rollback()
-        raise _refused(error) from error
+        raise refused(error) from error
     run.state = next_state
     if command == "stop":
         run.outcome, run.ended_at, run.stopped_by_id = "stopped", dt.datetime.now(dt.UTC), actor_id

@@ -289,3 +289,16 @@ def test_a_completed_prescription_completes_the_booking(
     assert robot_client.get(f"/api/v1/runs/{run['id']}", headers=seed.headers()).json()["outcome"] == "completed"
     booking = robot_client.get(f"/api/v1/sessions/{booked.session_id}", headers=seed.headers()).json()
     assert booking["status"] == "completed"
+
+
+def test_reset_of_a_robot_with_nothing_latched_is_a_409_not_a_500(
+    robot_client: TestClient, seed: Seed, fake_worker: FakeWorker
+) -> None:
+    from server.realtime.client import CommandRefused
+
+    fake_worker.refuse_with = CommandRefused("reset: refused in state idle")
+    response = robot_client.post("/api/v1/robot/reset", headers=seed.headers())
+    assert response.status_code == 409 and "idle" in response.json()["detail"]
+    fake_worker.refuse_with = None
+    assert robot_client.post("/api/v1/robot/reset", headers=seed.headers()).status_code == 200
+    assert fake_worker.command_names()[-1] == "reset"

@@ -29,7 +29,7 @@ DEFAULT_CONFIGURATION_PATH = Path(__file__).with_name("drives.toml")
 INT32_MAX = 2**31 - 1
 
 
-class DriveConfigurationError(HalError, InvalidValueError):
+class DriveConfigurationError(InvalidValueError, HalError):
     """A drive configuration, EDS or drive answer that forbids motion; names field, value and limit."""
 
 
