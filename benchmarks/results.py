@@ -14,9 +14,14 @@ HEADER = "# Benchmark results\n\nDated figures written by `ssp-rehab bench <name
 
 
 def machine_summary() -> str:
+    """The machine and how busy it was: figures from a loaded machine read differently."""
     import os
 
-    return f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    load_1min = os.getloadavg()[0]
+    return (
+        f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"load average {load_1min:.1f} at the end of the run"
+    )
 
 
 def record(name: str, figures: dict[str, Any], *, path: Path = RESULTS_PATH) -> None:
