@@ -93,6 +93,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   let framesThisSecond = 0;
   let frameRate = 0;
   let lastState = null;
+  let activeRun = null; // declared with lastState: telemetry frames may arrive before the runs load
   const rateTimer = setInterval(() => { frameRate = framesThisSecond; framesThisSecond = 0; renderHealth(); }, 1000);
 
   function renderHealth() {
@@ -118,7 +119,9 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (frame.type === "error") { banner("error", `Robot offline: ${frame.detail}`, { key: "robot" }); return; }
     const s = frame.state;
     if (!s) return;
+    const robotStateChanged = !lastState || lastState.state !== s.state;
     lastState = s;
+    if (robotStateChanged) updateControls();
     framesThisSecond += 1;
     chartsHost.dataset.samples = String(Number(chartsHost.dataset.samples || 0) + 1);
     clear(supervisorState).append(badge(s.state), ` drives ${s.hal_state}`);
@@ -177,7 +180,18 @@ export async function sessionPage(main, sessionId, cleanup) {
   }, 1000);
 
   // --- runs, events, exports -------------------------------------------------------------------
-  let activeRun = null;
+  // The buttons follow the robot's true state, not only the run records: after an emergency stop or a
+  // fault, Start stays disabled until the robot is reset (the worker would refuse it anyway).
+  const STARTABLE_ROBOT_STATES = ["idle", "ready", "stopped"];
+  function updateControls() {
+    const robotState = lastState ? lastState.state : null;
+    const robotBlocks = robotState !== null && !STARTABLE_ROBOT_STATES.includes(robotState);
+    controls.start.disabled = Boolean(activeRun) || robotBlocks;
+    controls.start.title = robotBlocks && !activeRun ? `The robot is ${robotState.toUpperCase()}: reset it first.` : "";
+    controls.pause.disabled = !activeRun || activeRun.state !== "running";
+    controls.resume.disabled = !activeRun || activeRun.state !== "paused";
+    controls.stop.disabled = !activeRun;
+  }
   async function refreshRuns() {
     const runs = await get(`/sessions/${sessionId}/runs`);
     activeRun = runs.find((r) => r.state === "running" || r.state === "paused") || null;
@@ -186,10 +200,7 @@ export async function sessionPage(main, sessionId, cleanup) {
     runState.className = `badge big-state ${shown}`;
     runState.textContent = shown.replace(/_/g, " ");
     runState.dataset.state = shown;
-    controls.start.disabled = Boolean(activeRun);
-    controls.pause.disabled = !activeRun || activeRun.state !== "running";
-    controls.resume.disabled = !activeRun || activeRun.state !== "paused";
-    controls.stop.disabled = !activeRun;
+    updateControls();
     const blocks = await Promise.all(runs.slice().reverse().map(async (run) => {
       const events = await get(`/runs/${run.id}/events`);
       const format = h("select", { "aria-label": `Export format for run ${run.id}` }, EXPORT_FORMATS.map(([v, t]) => h("option", { value: v }, t)));

@@ -127,6 +127,8 @@ def test_clinician_flow(console_service: dict[str, object], chromium_path: Path)
             expect(page.locator("#run-state")).to_have_attribute("data-state", "emergency_stop", timeout=30_000)
             expect(page.locator('#runs tr[data-kind="emergency_stop"]').first).to_be_visible(timeout=30_000)
             expect(page.locator("#robot-status")).to_contain_text("E-STOP", timeout=15_000)
+            # The latched stop shows in the controls too: nothing can be started until a reset.
+            expect(page.locator("#start-button")).to_be_disabled(timeout=15_000)
             shot(page, "after-estop")
 
             # 9. Export the log: the download succeeds and is not empty.
