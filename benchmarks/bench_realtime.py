@@ -23,7 +23,7 @@ import numpy as np
 from core.robot import default_twin
 from server.hal.kinematic import KinematicHal
 from server.realtime.client import CommandRefused, WorkerClient
-from server.realtime.loop import LATE_THRESHOLD_NS, configure_realtime
+from server.realtime.loop import LATE_THRESHOLD_NS, FixedRateLoop, configure_realtime
 from server.realtime.pipeline import TickPipeline
 from server.realtime.prescription import plan_prescription
 from server.realtime.supervisor import SupervisorConfig
@@ -257,10 +257,41 @@ def _api_under_load(client: _TappedClient, seconds: float, estop_cycles: int) ->
     return figures
 
 
+def _empty_loop(seconds: float, results: Any) -> None:
+    """The same fixed-rate loop with no work, set up as the worker sets itself up (pinned, SCHED_FIFO where
+    permitted, collector off): what this machine's scheduler alone costs in lateness."""
+    configure_realtime(None)
+    gc.disable()
+    loop = FixedRateLoop(1000)
+    lateness_ns = np.zeros(int(seconds * 1000))
+    loop.rebase()
+    for index in range(lateness_ns.size):
+        lateness_ns[index] = loop.wait()
+    results.put(lateness_ns / 1e3)
+
+
+def empty_loop_baseline(seconds: float) -> dict[str, Any]:
+    """Lateness of an empty 1 kHz loop in its own spawned process, measured in the same run as the worker."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("spawn")
+    results = context.Queue()
+    process = context.Process(target=_empty_loop, args=(seconds, results), name="empty-loop-baseline")
+    process.start()
+    lateness_us = results.get(timeout=seconds + 60.0)
+    process.join(timeout=10.0)
+    return {
+        "ticks": int(lateness_us.size),
+        "lateness_us": _percentiles(lateness_us),
+        "late_over_500us_fraction": round(float(np.mean(lateness_us > LATE_THRESHOLD_NS / 1e3)), 6),
+    }
+
+
 def run(*, quick: bool) -> dict[str, Any]:
     seconds = 10.0 if quick else 60.0
     estop_cycles = 10 if quick else 40
     compute = tick_compute(20_000 if quick else 120_000)
+    baseline = empty_loop_baseline(seconds)
     client = _TappedClient(None, "kinematic", 1000)
     client.start()
     try:
@@ -285,6 +316,10 @@ def run(*, quick: bool) -> dict[str, Any]:
         "late_over_500us_fraction": late_fraction,
         "estop_latency_ms_p99": estop_p99 if np.isfinite(estop_p99) else _percentiles(client_latencies)["p99"],
         "estop_latency_measured_from": "REST API call" if np.isfinite(estop_p99) else "WorkerClient call",
+        "empty_loop_baseline": baseline,
+        "late_fraction_over_empty_loop_baseline": round(
+            late_fraction / max(baseline["late_over_500us_fraction"], 1e-6), 2
+        ),
         "loop_1khz_alone": alone,
         "loop_1khz_with_api_load": under_load,
         "estop_latency_ms_from_client": _percentiles(client_latencies),

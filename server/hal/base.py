@@ -22,6 +22,7 @@ import abc
 import enum
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from core.errors import InvalidValueError
@@ -29,6 +30,40 @@ from core.robot import TwinRobot
 
 AXIS_COUNT = 12
 FEET = ("right", "left")
+
+
+COMMAND_FIELDS = ("positions_m", "velocity_feedforward_m_s", "force_feedforward_n")
+# Codes of `_first_invalid_setpoint`: 1–3 a non-finite value in COMMAND_FIELDS[code − 1], then stroke, jump.
+_VALID, _NOT_FINITE_LAST, _OUTSIDE_STROKE, _JUMP = 0, 3, 4, 5
+
+
+@numba.njit(cache=True)
+def _first_invalid_setpoint(
+    positions: np.ndarray,
+    velocity_feedforward: np.ndarray,
+    force_feedforward: np.ndarray,
+    stroke_min: np.ndarray,
+    stroke_max: np.ndarray,
+    reference: np.ndarray,
+    max_step: float,
+) -> tuple[int, int, float]:
+    """(code, axis, value) of the first refusal in check order, (0, −1, 0) when the command is valid;
+    for a jump, the axis with the largest one."""
+    for code, values in ((1, positions), (2, velocity_feedforward), (3, force_feedforward)):
+        for axis in range(values.size):
+            if not np.isfinite(values[axis]):
+                return code, axis, values[axis]
+    for axis in range(positions.size):
+        if positions[axis] < stroke_min[axis] or positions[axis] > stroke_max[axis]:
+            return _OUTSIDE_STROKE, axis, positions[axis]
+    worst_axis, worst_jump = -1, max_step
+    for axis in range(positions.size):
+        jump = abs(positions[axis] - reference[axis])
+        if jump > worst_jump:
+            worst_axis, worst_jump = axis, jump
+    if worst_axis >= 0:
+        return _JUMP, worst_axis, positions[worst_axis]
+    return _VALID, -1, 0.0
 
 
 class HalState(enum.Enum):
@@ -184,33 +219,40 @@ class HardwareInterface(abc.ABC):
             self._last_command_m[:] = command.positions_m
 
     def validate(self, command: HalCommand) -> None:
-        positions = command.positions_m
-        for name in ("positions_m", "velocity_feedforward_m_s", "force_feedforward_n"):
+        """Refuse a command with a non-finite value, a set-point outside the stroke, or a jump beyond one
+        tick's travel. The checks run in one compiled call (they are on every tick's path); the message is
+        built only for a refusal."""
+        for name in COMMAND_FIELDS:
             values = getattr(command, name)
             if values.shape != (AXIS_COUNT,):
                 raise CommandRejectedError(
                     name, float("nan"), f"expected {AXIS_COUNT} values, got shape {values.shape}"
                 )
-            if not np.all(np.isfinite(values)):
-                axis = int(np.argmax(~np.isfinite(values)))
-                raise CommandRejectedError(f"{name}[{self.axis_name(axis)}]", float(values[axis]), "must be finite")
-        below, above = positions < self.stroke_min_m, positions > self.stroke_max_m
-        if np.any(below | above):
-            axis = int(np.argmax(below | above))
-            raise CommandRejectedError(
-                f"positions_m[{self.axis_name(axis)}]",
-                float(positions[axis]),
-                f"stroke is [{self.stroke_min_m[axis]:.4f}, {self.stroke_max_m[axis]:.4f}] m",
-            )
         reference = self._last_command_m if self._last_command_m is not None else self._measured_positions()
-        jumps = np.abs(positions - reference)
-        if np.any(jumps > self.max_step_m):
-            axis = int(np.argmax(jumps))
+        code, axis, value = _first_invalid_setpoint(
+            command.positions_m,
+            command.velocity_feedforward_m_s,
+            command.force_feedforward_n,
+            self.stroke_min_m,
+            self.stroke_max_m,
+            reference,
+            self.max_step_m,
+        )
+        if code == _VALID:
+            return
+        if code <= _NOT_FINITE_LAST:
+            raise CommandRejectedError(f"{COMMAND_FIELDS[code - 1]}[{self.axis_name(axis)}]", value, "must be finite")
+        field_name = f"positions_m[{self.axis_name(axis)}]"
+        if code == _OUTSIDE_STROKE:
             raise CommandRejectedError(
-                f"positions_m[{self.axis_name(axis)}]",
-                float(positions[axis]),
-                f"jump of {jumps[axis] * 1e3:.3f} mm exceeds one tick's travel {self.max_step_m * 1e3:.3f} mm",
+                field_name, value, f"stroke is [{self.stroke_min_m[axis]:.4f}, {self.stroke_max_m[axis]:.4f}] m"
             )
+        jump_m = abs(value - reference[axis])
+        raise CommandRejectedError(
+            field_name,
+            value,
+            f"jump of {jump_m * 1e3:.3f} mm exceeds one tick's travel {self.max_step_m * 1e3:.3f} mm",
+        )
 
     @staticmethod
     def axis_name(axis: int) -> str:

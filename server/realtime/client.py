@@ -13,6 +13,7 @@ import itertools
 import logging
 import multiprocessing
 import os
+import sys
 import threading
 import time
 from typing import Any
@@ -27,6 +28,7 @@ from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict
 from server.realtime.worker import WorkerConfig, worker_entry
 
+HEARTBEAT_SWITCH_INTERVAL_S = 0.001
 HEARTBEAT_PERIOD_S = 0.02  # five heartbeats per 100 ms watchdog window
 HEARTBEAT_FIFO_PRIORITY = 10  # below the worker's loop (80)
 TELEMETRY_CAPACITY = 1 << 15  # 32 s at 1 kHz between drains
@@ -105,6 +107,10 @@ class WorkerClient:
         self.process.start()
         command_reader.close()
         reply_writer.close()
+        # The heartbeat thread shares the GIL with whatever else this process does (the API's request
+        # threads). With the default 5 ms switch interval a crowd of busy threads can keep it waiting past the
+        # worker's 100 ms watchdog; 1 ms bounds that wait to a few milliseconds per competing thread.
+        sys.setswitchinterval(min(sys.getswitchinterval(), HEARTBEAT_SWITCH_INTERVAL_S))
         self._heartbeat_thread = threading.Thread(target=self._send_heartbeats, name="worker-heartbeat", daemon=True)
         self._heartbeat_thread.start()
         deadline = time.monotonic() + timeout_s
