@@ -1,7 +1,8 @@
 """`WorkerClient`: the service's handle on one robot's real-time worker process.
 
 It creates the shared memory (control flags, latest-state seqlock, telemetry and event rings) and the
-command and reply pipes, spawns the worker, and keeps a background thread sending heartbeats. The
+command and reply pipes, spawns the worker and the heartbeat relay (server.realtime.heartbeat), and keeps
+a background thread showing the relay that this process is alive. The
 emergency stop is written straight into shared memory, where the worker looks every tick, so it never
 waits behind a command, a reply or a busy service; it is also sent down the pipe as a second path.
 """
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from server.hal.backends import BACKENDS
+from server.realtime.heartbeat import SERVICE_STALL_TOLERANCE_S, relay_entry
 from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, validate_control_rate
 from server.realtime.prescription import PrescriptionError, PrescriptionRejected
 from server.realtime.shm import ControlBlock, Seqlock, SharedRing
@@ -73,6 +75,7 @@ class WorkerClient:
         self._reply_lock = threading.Lock()
         self._stop_heartbeat = threading.Event()
         self._heartbeat_thread: threading.Thread | None = None
+        self._relay: multiprocessing.process.BaseProcess | None = None
 
     # --- lifecycle --------------------------------------------------------------------------------
 
@@ -107,9 +110,16 @@ class WorkerClient:
         self.process.start()
         command_reader.close()
         reply_writer.close()
-        # The heartbeat thread shares the GIL with whatever else this process does (the API's request
-        # threads). With the default 5 ms switch interval a crowd of busy threads can keep it waiting past the
-        # worker's 100 ms watchdog; 1 ms bounds that wait to a few milliseconds per competing thread.
+        relay_link, self._relay_link = context.Pipe(duplex=False)
+        self._relay = context.Process(
+            target=relay_entry,
+            args=(self.control.name, relay_link, self.heartbeat_period_s, SERVICE_STALL_TOLERANCE_S),
+            name="ssp-rehab-heartbeat",
+            daemon=True,
+        )
+        self._relay.start()
+        relay_link.close()
+        # Shorter GIL turns keep this process's own beat (to the relay) regular among busy API threads.
         sys.setswitchinterval(min(sys.getswitchinterval(), HEARTBEAT_SWITCH_INTERVAL_S))
         self._heartbeat_thread = threading.Thread(target=self._send_heartbeats, name="worker-heartbeat", daemon=True)
         self._heartbeat_thread.start()
@@ -143,6 +153,12 @@ class WorkerClient:
         self._stop_heartbeat.set()
         if self._heartbeat_thread is not None:
             self._heartbeat_thread.join(1.0)
+        if self._relay is not None:
+            self._relay_link.close()  # EOF: the relay stops beating and exits
+            self._relay.join(5.0)
+            if self._relay.is_alive():
+                self._relay.terminate()
+            self._relay = None
         self._commands.close()
         self._replies.close()
         for block in (self.control, self.state, self.telemetry, self.events):
@@ -233,18 +249,14 @@ class WorkerClient:
             raise _error_from_reply(result)
 
     def _send_heartbeats(self) -> None:
-        # A busy service must not starve this thread past the 100 ms watchdog: ask for a real-time
-        # priority for this thread only (Linux applies sched_setscheduler(0, …) to the calling thread).
+        """Show the relay this process is alive: advance `service_beats` every heartbeat period."""
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(HEARTBEAT_FIFO_PRIORITY))
         except (OSError, AttributeError) as error:
             log.info("heartbeat thread runs without real-time priority: %s", error)
+        beats = self.control.fields["service_beats"]
         while not self._stop_heartbeat.wait(self.heartbeat_period_s):
-            try:
-                with self._send_lock:
-                    self._commands.send((0, "heartbeat", None))
-            except (OSError, EOFError, ValueError):
-                return
+            beats += np.uint64(1)
 
 
 def _error_from_reply(result: dict[str, Any]) -> Exception:

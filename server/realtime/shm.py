@@ -169,6 +169,8 @@ CONTROL_DTYPE = np.dtype(
         ("estop_request_ns", np.int64),  # perf_counter_ns (CLOCK_MONOTONIC) of the latest request
         ("worker_pid", np.int64),
         ("worker_ready", np.uint64),
+        ("service_beats", np.uint64),  # advanced by the service's heartbeat thread (server.realtime.heartbeat)
+        ("relay_beats", np.uint64),  # advanced by the heartbeat relay; the worker's watchdog watches this
     ]
 )
 

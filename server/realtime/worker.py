@@ -77,6 +77,8 @@ class Worker:
         self._estop_seen = int(self.control.fields["estop_requests"][0])
         self._estop_requests = self.control.fields["estop_requests"]
         self._estop_times = self.control.fields["estop_request_ns"]
+        self._relay_beats = self.control.fields["relay_beats"]
+        self._relay_beats_seen = int(self._relay_beats[0])
         self.service_gone = False
         self.shutdown_requested = False
         self._next_collect_s = 0.0
@@ -193,6 +195,10 @@ class Worker:
         while True:
             lateness = self.loop.wait()
             started = time.perf_counter_ns()
+            relay_beats = int(self._relay_beats[0])
+            if relay_beats != self._relay_beats_seen:
+                self._relay_beats_seen = relay_beats
+                pipeline.heartbeat()
             requests = int(self._estop_requests[0])
             if requests != self._estop_seen:
                 self._estop_seen = requests
