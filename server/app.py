@@ -17,7 +17,6 @@ import math
 from collections.abc import AsyncIterator
 from typing import Any
 
-import anyio.to_thread
 from fastapi import APIRouter, FastAPI, Request, status
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
@@ -176,9 +175,6 @@ def create_app(
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        # Sync routes run in a thread pool. Fewer threads than anyio's default 40 keep the GIL convoy short for
-        # the worker heartbeat and the emergency stop; SQLite serialises writers anyway.
-        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.api_threads
         owned_engine = None
         app.state.database = database
         if database is None:

@@ -31,7 +31,6 @@ class Settings(BaseSettings):
         default=0, ge=0, le=12, description="Simulated CiA 402 drives on the same bus (commissioning without a robot)."
     )
     start_worker: bool = Field(default=True, description="Start the real-time worker with the service.")
-    api_threads: int = Field(default=8, ge=2, le=64, description="Threads serving synchronous API routes.")
 
     secret_key: SecretStr | None = Field(
         default=None, description="Signs access tokens; default: generated in data_dir."
