@@ -21,6 +21,7 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass, field
+from typing import Any
 
 import numba
 import numpy as np
@@ -139,6 +140,11 @@ class HardwareInterface(abc.ABC):
         # 10 % margin for rounding in the command path.
         self.max_step_m = 1.1 * robots[0].limits.slider_velocity_max_m_s * control_period_s
         self._last_command_m: np.ndarray | None = None
+        # Compile the per-tick check now: compiling inside the first write() stalls that tick for hundreds
+        # of milliseconds, long enough for the drives' own communication-loss stop.
+        idle = HalCommand()
+        idle.positions_m[:] = self.stroke_min_m
+        _first_invalid_setpoint(*self._check_arguments(idle, self.stroke_min_m))
 
     # --- lifecycle ---------------------------------------------------------------------------------
 
@@ -229,15 +235,7 @@ class HardwareInterface(abc.ABC):
                     name, float("nan"), f"expected {AXIS_COUNT} values, got shape {values.shape}"
                 )
         reference = self._last_command_m if self._last_command_m is not None else self._measured_positions()
-        code, axis, value = _first_invalid_setpoint(
-            command.positions_m,
-            command.velocity_feedforward_m_s,
-            command.force_feedforward_n,
-            self.stroke_min_m,
-            self.stroke_max_m,
-            reference,
-            self.max_step_m,
-        )
+        code, axis, value = _first_invalid_setpoint(*self._check_arguments(command, reference))
         if code == _VALID:
             return
         if code <= _NOT_FINITE_LAST:
@@ -252,6 +250,17 @@ class HardwareInterface(abc.ABC):
             field_name,
             value,
             f"jump of {jump_m * 1e3:.3f} mm exceeds one tick's travel {self.max_step_m * 1e3:.3f} mm",
+        )
+
+    def _check_arguments(self, command: HalCommand, reference: np.ndarray) -> tuple[Any, ...]:
+        return (
+            command.positions_m,
+            command.velocity_feedforward_m_s,
+            command.force_feedforward_n,
+            self.stroke_min_m,
+            self.stroke_max_m,
+            reference,
+            self.max_step_m,
         )
 
     @staticmethod
