@@ -544,3 +544,40 @@ class TickPipeline:
         record["limit_hits"] = self.limit_hits
         record["limit_code"] = self.last_limit
         record["fall_detected"] = self.fall_monitor is not None and self.fall_monitor.fallen
+
+
+# A short session that reaches every compiled kernel of the tick: washout, shaping, IK and limits, dynamics,
+# the simulated patient, FK, and the emergency-stop deceleration.
+_COMPILE_PRESCRIPTION = {
+    "segments": [{"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.3, "frequency_hz": 0.5}, "duration_s": 5.0}]
+}
+_COMPILE_PATIENT = {"body_mass_kg": 70.0, "height_m": 1.70}
+
+
+def compile_tick_path(twin: TwinRobot, control_rate_hz: int, config: SupervisorConfig) -> None:
+    """Run a throwaway session on an ideal HAL so that every compiled per-tick kernel is compiled, or loaded
+    from numba's cache, before the worker's loop starts. Compiling inside a tick stalls it for up to seconds
+    on a fresh install: long enough for the drives' own communication-loss stop, or to delay an emergency stop.
+    """
+    from server.hal.kinematic import KinematicHal
+    from server.realtime.prescription import plan_prescription
+
+    hal = KinematicHal(twin, 1.0 / control_rate_hz, communication_timeout_s=60.0)
+    hal.configure()
+    hal.home()
+    pipeline = TickPipeline(twin, hal, control_rate_hz, config, lambda *_: None)
+    plan = plan_prescription(
+        _COMPILE_PRESCRIPTION, twin, control_rate_hz=control_rate_hz, config=config, patient=_COMPILE_PATIENT
+    )
+    pipeline.load(plan)
+    pipeline.heartbeat()
+    pipeline.start()
+    ticks = round((config.soft_start_s + 1.5) * control_rate_hz)
+    for _ in range(ticks):  # the approach, the soft start and some cue
+        pipeline.heartbeat()
+        pipeline.tick(0)
+    pipeline.emergency_stop(time.perf_counter_ns())
+    for _ in range(round((config.estop_ramp_s + 0.1) * control_rate_hz)):
+        pipeline.heartbeat()
+        pipeline.tick(0)
+    hal.shutdown()

@@ -24,7 +24,7 @@ from typing import Any
 from core.robot import default_twin, load_twin
 from server.hal.backends import make_hal
 from server.realtime.loop import FixedRateLoop, configure_realtime, freeze_garbage_collector
-from server.realtime.pipeline import TickPipeline
+from server.realtime.pipeline import TickPipeline, compile_tick_path
 from server.realtime.prescription import (
     PrescriptionError,
     PrescriptionRejected,
@@ -68,6 +68,7 @@ class Worker:
         self.events = SharedRing(EVENT_DTYPE, config.events_capacity, config.events_name)
         self.twin = load_twin(config.twin_path) if config.twin_path else default_twin()
         self.supervisor_config = SupervisorConfig.from_dict(config.supervisor)
+        compile_tick_path(self.twin, config.control_rate_hz, self.supervisor_config)
         period = 1.0 / config.control_rate_hz
         self.hal = make_hal(config.backend, self.twin, period, **config.hal_options)
         self.hal.configure()
