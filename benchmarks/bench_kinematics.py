@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from core.kinematics import ForwardKinematics, inverse_kinematics, pose_jacobian
+from core.kinematics import IK_THREADS, ForwardKinematics, inverse_kinematics, pose_jacobian
 from core.robot import SSPRobot, paper_robot
 
 IK_TARGET_LEGS_PER_S = 5e6
@@ -50,6 +50,7 @@ def bench_batch_ik(robot: SSPRobot, pose_count: int) -> dict[str, Any]:
     return {
         "poses": pose_count,
         "includes": "closed form, stroke, cone and singularity (Jacobian condition number) checks",
+        "threads": IK_THREADS,
         "reachable_fraction": float(np.mean(solution.reachable)),
         "seconds_best_of_3": best,
         "leg_solutions_per_s": rate,

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import enum
 import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -144,6 +146,7 @@ def _as_poses(poses: np.ndarray) -> np.ndarray:
 
 # Poses are solved in chunks of this many so that every temporary stays in cache; the loop is over
 # chunks, each chunk is vectorised.
+IK_THREADS = min(2, os.cpu_count() or 1)  # batches of more than one chunk use both cores
 IK_CHUNK_POSES = 4096
 
 
@@ -348,7 +351,7 @@ def _spectral_norm_bounds(matrix: np.ndarray, gram: np.ndarray, power: np.ndarra
     return (row_max / np.sqrt(6.0)) ** (1.0 / 16.0), row_max ** (1.0 / 16.0)
 
 
-@numba.njit(cache=True, fastmath=False)
+@numba.njit(cache=True, fastmath=False, nogil=True)
 def _conditioning_kernel(
     lever_x: np.ndarray,
     lever_y: np.ndarray,
@@ -542,7 +545,8 @@ def _solve(
     violations = np.empty((count, 6), dtype=np.uint8)
     base_cone = np.empty((count, 6))
     platform_cone = np.empty((count, 6))
-    for start in range(0, count, IK_CHUNK_POSES):
+
+    def solve_chunk(start: int) -> None:
         chunk = slice(start, start + IK_CHUNK_POSES)
         chunk_rotations = rotation_matrices(poses[chunk, 3:]) if rotations is None else rotations[chunk]
         _solve_chunk(
@@ -555,6 +559,15 @@ def _solve(
             platform_cone[chunk],
             singularity_check,
         )
+
+    starts = range(0, count, IK_CHUNK_POSES)
+    if len(starts) > 1 and IK_THREADS > 1:
+        # Chunks write disjoint slices; numpy's large ufuncs and the nogil conditioning kernel run in parallel.
+        with ThreadPoolExecutor(IK_THREADS) as pool:
+            list(pool.map(solve_chunk, starts))
+    else:
+        for start in starts:
+            solve_chunk(start)
     return IKSolution(poses, sliders, violations, base_cone, platform_cone, robot)
 
 
