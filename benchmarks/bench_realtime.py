@@ -21,11 +21,9 @@ from typing import Any
 import numpy as np
 
 from core.robot import default_twin
-from server.hal.kinematic import KinematicHal
 from server.realtime.client import CommandRefused, WorkerClient
 from server.realtime.loop import LATE_THRESHOLD_NS, FixedRateLoop, configure_realtime
-from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import plan_prescription
+from server.realtime.pipeline import ideal_session
 from server.realtime.supervisor import SupervisorConfig
 
 PATIENT = {"body_mass_kg": 75.0, "height_m": 1.75}
@@ -53,15 +51,8 @@ def _percentiles(values: np.ndarray, scale: float = 1.0) -> dict[str, float]:
 
 def tick_compute(ticks: int) -> dict[str, Any]:
     """Per-tick compute of the full pipeline, in this process, with the collector off as in the worker."""
-    twin = default_twin()
-    hal = KinematicHal(twin, 0.001, communication_timeout_s=10.0)
-    hal.configure()
-    hal.home()
-    pipeline = TickPipeline(twin, hal, 1000, SupervisorConfig(), lambda *_: None)
-    plan = plan_prescription({"segments": [{"cue": GAIT, "duration_s": ticks / 1000 + 10}]}, twin, patient=PATIENT)
-    pipeline.load(plan)
-    pipeline.heartbeat()
-    pipeline.start()
+    prescription = {"segments": [{"cue": GAIT, "duration_s": ticks / 1000 + 10}]}
+    pipeline = ideal_session(default_twin(), 1000, SupervisorConfig(), prescription, PATIENT)
     for _ in range(3000):  # past the approach and the soft start
         pipeline.heartbeat()
         pipeline.tick(0)

@@ -554,11 +554,15 @@ _COMPILE_PRESCRIPTION = {
 _COMPILE_PATIENT = {"body_mass_kg": 70.0, "height_m": 1.70}
 
 
-def compile_tick_path(twin: TwinRobot, control_rate_hz: int, config: SupervisorConfig) -> None:
-    """Run a throwaway session on an ideal HAL so that every compiled per-tick kernel is compiled, or loaded
-    from numba's cache, before the worker's loop starts. Compiling inside a tick stalls it for up to seconds
-    on a fresh install: long enough for the drives' own communication-loss stop, or to delay an emergency stop.
-    """
+def ideal_session(
+    twin: TwinRobot,
+    control_rate_hz: int,
+    config: SupervisorConfig,
+    prescription: dict[str, Any],
+    patient: dict[str, Any],
+) -> TickPipeline:
+    """A pipeline on an ideal (kinematic) HAL with `prescription` loaded and motion started, ticked by the
+    caller: for compiling the tick path and for timing it."""
     from server.hal.kinematic import KinematicHal
     from server.realtime.prescription import plan_prescription
 
@@ -566,18 +570,25 @@ def compile_tick_path(twin: TwinRobot, control_rate_hz: int, config: SupervisorC
     hal.configure()
     hal.home()
     pipeline = TickPipeline(twin, hal, control_rate_hz, config, lambda *_: None)
-    plan = plan_prescription(
-        _COMPILE_PRESCRIPTION, twin, control_rate_hz=control_rate_hz, config=config, patient=_COMPILE_PATIENT
+    pipeline.load(
+        plan_prescription(prescription, twin, control_rate_hz=control_rate_hz, config=config, patient=patient)
     )
-    pipeline.load(plan)
     pipeline.heartbeat()
     pipeline.start()
-    ticks = round((config.soft_start_s + 1.5) * control_rate_hz)
-    for _ in range(ticks):  # the approach, the soft start and some cue
+    return pipeline
+
+
+def compile_tick_path(twin: TwinRobot, control_rate_hz: int, config: SupervisorConfig) -> None:
+    """Run a throwaway session on an ideal HAL so that every compiled per-tick kernel is compiled, or loaded
+    from numba's cache, before the worker's loop starts. Compiling inside a tick stalls it for up to seconds
+    on a fresh install: long enough for the drives' own communication-loss stop, or to delay an emergency stop.
+    """
+    pipeline = ideal_session(twin, control_rate_hz, config, _COMPILE_PRESCRIPTION, _COMPILE_PATIENT)
+    for _ in range(round((config.soft_start_s + 1.5) * control_rate_hz)):  # approach, soft start, some cue
         pipeline.heartbeat()
         pipeline.tick(0)
     pipeline.emergency_stop(time.perf_counter_ns())
     for _ in range(round((config.estop_ramp_s + 0.1) * control_rate_hz)):
         pipeline.heartbeat()
         pipeline.tick(0)
-    hal.shutdown()
+    pipeline.hal.shutdown()

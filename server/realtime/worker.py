@@ -1,9 +1,10 @@
 """The real-time worker process (spawned by `WorkerClient`): it owns the HAL and runs the fixed-rate loop.
 
-Each iteration: wait for the deadline → the emergency-stop flag in shared memory (never queued behind
-anything) → commands from the pipe (a few per tick; the pipe closing means the service is gone) →
-`TickPipeline.tick` → the tick's record into the telemetry ring and behind the seqlock. Replies go back
-on their own pipe; events go into their own shared-memory ring at once.
+Each iteration: wait for the deadline → the heartbeat relay's beat count (server.realtime.heartbeat) →
+the emergency-stop flag in shared memory (never queued behind anything) → commands from the pipe (a few
+per tick; the pipe closing means the service is gone) → `TickPipeline.tick` → the tick's record into the
+telemetry ring and behind the seqlock. Replies go back on their own pipe; events go into their own
+shared-memory ring at once.
 
 A prescription is planned and checked offline here, by the worker, because the worker alone decides
 motion; that only happens with the drives off, and the loop's deadline grid restarts afterwards.
@@ -123,9 +124,6 @@ class Worker:
 
     def _handle(self, request_id: int, name: str, payload: Any) -> None:
         pipeline = self.pipeline
-        if name == "heartbeat":
-            pipeline.heartbeat()
-            return
         if name == "estop":
             pipeline.emergency_stop(payload)
             return
