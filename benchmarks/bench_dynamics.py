@@ -18,7 +18,7 @@ import numpy as np
 from core.dynamics import PayloadModel, TwinInverseDynamics
 from core.patient import PatientParameters
 from core.robot import default_twin
-from server.sim.simulator import SimulatorOptions, TwinSimulator
+from server.hal.sim.simulator import SimulatorOptions, TwinSimulator
 
 TICK_TARGET_US = 50.0
 REAL_TIME_TARGET = 5.0

@@ -103,8 +103,8 @@ def run_scenario(
     include_rods: bool,
     progress: bool,
 ) -> tuple[dict[str, Any], StanceTrajectory, np.ndarray]:
-    from server.sim.mjcf import SimModelOptions
-    from server.sim.model import TwinSimModel, rms_relative_error
+    from server.hal.sim.mjcf import SimModelOptions
+    from server.hal.sim.model import TwinSimModel, rms_relative_error
 
     if setting == "rated-load":
         twin, payload = paper_setting(twin)

@@ -21,7 +21,7 @@ def make_hal(backend: str, twin: TwinRobot, control_period_s: float, **options: 
 
         return KinematicHal(twin, control_period_s, **options)
     if backend == "sim":
-        from server.hal.sim import SimHal
+        from server.hal.sim.backend import SimHal
 
         return SimHal(twin, control_period_s, **options)
     if backend == "canopen":

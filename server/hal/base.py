@@ -21,12 +21,13 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numba
 import numpy as np
 
 from core.errors import InvalidValueError
+from core.patient import PatientParameters
 from core.robot import TwinRobot
 
 AXIS_COUNT = 12
@@ -86,6 +87,13 @@ class DriveState(enum.IntEnum):
     QUICK_STOP_ACTIVE = 5
     FAULT_REACTION_ACTIVE = 6
     FAULT = 7
+
+
+class PatientLike(Protocol):
+    """What `attach_patient` needs (server.realtime.prescription.PatientSetup has it)."""
+
+    parameters: PatientParameters
+    seed: int
 
 
 class HalError(RuntimeError):

@@ -12,17 +12,13 @@ the force the inverse dynamics predicted.
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from core.patient import SimulatedPatient
 from core.robot import TwinRobot
-from server.hal.base import AXIS_COUNT, DriveState, HalCommand, HalReading, HalState, HardwareInterface
-from server.realtime.twin_kernels import TwinKernels
-
-if TYPE_CHECKING:
-    from server.realtime.prescription import PatientSetup
+from core.twin_kernels import TwinKernels
+from server.hal.base import AXIS_COUNT, DriveState, HalCommand, HalReading, HalState, HardwareInterface, PatientLike
 
 
 class KinematicHal(HardwareInterface):
@@ -44,7 +40,7 @@ class KinematicHal(HardwareInterface):
         self._stance_scratch = np.zeros(6)
         self._support_acceleration = np.zeros(3)
 
-    def attach_patient(self, patient: PatientSetup | None) -> None:
+    def attach_patient(self, patient: PatientLike | None) -> None:
         """Put a simulated patient on the platforms (None takes them off)."""
         if patient is None:
             self._patient = None

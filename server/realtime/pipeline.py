@@ -29,6 +29,7 @@ from core.falls import FallMonitor
 from core.kinematics import ForwardKinematicsError
 from core.robot import TwinRobot
 from core.shaping import CommandShaper
+from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
 from core.washout import StreamingWashout
 from server.hal.base import (
     AXIS_COUNT,
@@ -52,7 +53,6 @@ from server.realtime.telemetry import (
     StopReason,
     SupervisorState,
 )
-from server.realtime.twin_kernels import VIOLATION_FIELDS, TwinKernels
 
 EventEmitter = Callable[[str, dict[str, Any], "str | None"], None]
 

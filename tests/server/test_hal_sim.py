@@ -10,8 +10,8 @@ import pytest
 from core.patient import PatientParameters
 from core.robot import GRAVITY_M_S2, TwinRobot
 from server.hal.base import CommandRejectedError, DriveState, HalCommand, HalError, HalReading, HalState
-from server.hal.sim import SimHal
-from server.sim.drives import ServoParameters
+from server.hal.sim.backend import SimHal
+from server.hal.sim.drives import ServoParameters
 
 PERIOD_S = 0.001
 

@@ -1,4 +1,4 @@
-"""The MuJoCo twin (server/sim): generated MJCF, inverse dynamics against core.dynamics, sensors."""
+"""The MuJoCo twin (server/hal/sim): generated MJCF, inverse dynamics against core.dynamics, sensors."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from core.dynamics import PayloadModel, StanceTrajectory, TwinInverseDynamics, paper_step_trajectory
 from core.robot import GRAVITY_M_S2, TwinRobot
-from server.sim.mjcf import SimModelOptions, twin_mjcf
-from server.sim.model import TwinSimModel, rms_relative_error
+from server.hal.sim.mjcf import SimModelOptions, twin_mjcf
+from server.hal.sim.model import TwinSimModel, rms_relative_error
 
 PATIENT = PayloadModel.from_body(75.0, 1.75)
 

@@ -11,6 +11,7 @@ import pytest
 
 from core.kinematics import twin_inverse_kinematics
 from core.robot import TwinRobot
+from core.twin_kernels import TwinKernels
 from server.hal.base import DriveState, HalState, HardwareInterface
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
@@ -18,7 +19,6 @@ from server.realtime.prescription import plan_prescription
 from server.realtime.ramps import PoseRamp
 from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, SupervisorConfigError, TransitionRefused
 from server.realtime.telemetry import StopReason, SupervisorState
-from server.realtime.twin_kernels import TwinKernels
 
 S = SupervisorState
 RATE_HZ = 1000
@@ -212,7 +212,7 @@ def test_estop_while_running_reaches_standstill_within_the_ramp_with_bounded_jer
 
 @pytest.mark.slow
 def test_estop_while_running_in_the_sim_comes_to_a_standstill_within_the_ramp(twin: TwinRobot) -> None:
-    from server.hal.sim import SimHal
+    from server.hal.sim.backend import SimHal
 
     harness = Harness(twin, hal=SimHal(twin, 1.0 / RATE_HZ))
     harness.load(duration_s=5.0)

@@ -17,9 +17,9 @@ import numpy as np
 
 from core.patient import PatientParameters, SimulatedPatient
 from core.robot import TwinRobot
-from server.sim.drives import ServoDrives, ServoParameters
-from server.sim.mjcf import SimModelOptions
-from server.sim.model import TwinSimModel
+from server.hal.sim.drives import ServoDrives, ServoParameters
+from server.hal.sim.mjcf import SimModelOptions
+from server.hal.sim.model import TwinSimModel
 
 
 @dataclass(frozen=True)

@@ -23,10 +23,11 @@ from core.kinematics import (
 )
 from core.robot import TwinRobot
 from core.rotations import rotation_into
-from server.realtime.telemetry import LimitCode
 
 # Row layout of the (4,) violation output: code, axis (0..11, −1 for the whole body), value, limit.
 VIOLATION_FIELDS = 4
+# Violation codes; server.realtime.telemetry.LimitCode names the same numbers (a test checks).
+ROD_REACH, STROKE, BASE_JOINT_CONE, PLATFORM_JOINT_CONE, TILT, SLIDER_VELOCITY, SLIDER_ACCELERATION = range(1, 8)
 
 
 @numba.njit(cache=True)
@@ -71,7 +72,7 @@ def twin_command_kernel(
     rotation_into(stance_pose[3], stance_pose[4], stance_pose[5], stance_rotation)
     tilt = math.acos(min(1.0, max(-1.0, math.cos(stance_pose[3]) * math.cos(stance_pose[4]))))
     if tilt > limits[2]:
-        _set_violation(violation, 5, -1, tilt, limits[2])
+        _set_violation(violation, TILT, -1, tilt, limits[2])
     for side in range(2):
         # Platform rotation and position in this robot's base frame (core.kinematics.twin_platform_poses).
         for i in range(3):
@@ -107,38 +108,38 @@ def twin_command_kernel(
             dz = wz - rail_z
             reach_sq = rod_length * rod_length - dy * dy - dz * dz
             if reach_sq < 0.0:
-                _set_violation(violation, 1, axis, math.sqrt(dy * dy + dz * dz), rod_length)
+                _set_violation(violation, ROD_REACH, axis, math.sqrt(dy * dy + dz * dz), rod_length)
                 sliders_out[axis] = previous_sliders[axis]
                 continue
             along = math.sqrt(reach_sq)
             slider = wx + sides[side, leg] * along
             sliders_out[axis] = slider
             if slider < stroke_min[axis]:
-                _set_violation(violation, 2, axis, slider, stroke_min[axis])
+                _set_violation(violation, STROKE, axis, slider, stroke_min[axis])
             elif slider > stroke_max[axis]:
-                _set_violation(violation, 2, axis, slider, stroke_max[axis])
+                _set_violation(violation, STROKE, axis, slider, stroke_max[axis])
             # Rod direction d = (−side·along, dy, dz)/L against the neutral axis, at the slider (base
             # frame) and at the platform (axis carried along by the platform rotation).
             rx, ry, rz = -sides[side, leg] * along / rod_length, dy / rod_length, dz / rod_length
             ax, ay, az = cone_axes[side, leg, 0], cone_axes[side, leg, 1], cone_axes[side, leg, 2]
             base_cone = math.acos(min(1.0, max(-1.0, rx * ax + ry * ay + rz * az)))
             if base_cone > limits[0]:
-                _set_violation(violation, 3, axis, base_cone, limits[0])
+                _set_violation(violation, BASE_JOINT_CONE, axis, base_cone, limits[0])
             qx = platform_rotation[0, 0] * ax + platform_rotation[0, 1] * ay + platform_rotation[0, 2] * az
             qy = platform_rotation[1, 0] * ax + platform_rotation[1, 1] * ay + platform_rotation[1, 2] * az
             qz = platform_rotation[2, 0] * ax + platform_rotation[2, 1] * ay + platform_rotation[2, 2] * az
             platform_cone = math.acos(min(1.0, max(-1.0, rx * qx + ry * qy + rz * qz)))
             if platform_cone > limits[1]:
-                _set_violation(violation, 4, axis, platform_cone, limits[1])
+                _set_violation(violation, PLATFORM_JOINT_CONE, axis, platform_cone, limits[1])
     for axis in range(12):
         velocity = (sliders_out[axis] - previous_sliders[axis]) / period_s
         acceleration = (velocity - previous_velocity[axis]) / period_s
         velocity_out[axis] = velocity
         acceleration_out[axis] = acceleration
         if abs(velocity) > limits[3]:
-            _set_violation(violation, 6, axis, velocity, limits[3])
+            _set_violation(violation, SLIDER_VELOCITY, axis, velocity, limits[3])
         if abs(acceleration) > limits[4]:
-            _set_violation(violation, 7, axis, acceleration, limits[4])
+            _set_violation(violation, SLIDER_ACCELERATION, axis, acceleration, limits[4])
 
 
 @numba.njit(cache=True)
@@ -320,6 +321,3 @@ class TwinKernels:
     def neutral_sliders(self) -> np.ndarray:
         """The twelve slider positions at the neutral stance."""
         return self.sliders_for(np.zeros(6), np.zeros(12))
-
-
-assert LimitCode.TILT == 5 and LimitCode.SLIDER_VELOCITY == 6 and LimitCode.SLIDER_ACCELERATION == 7

@@ -1,6 +1,6 @@
-"""The `sim` HAL backend: the MuJoCo twin (server/sim) stepped once per control period.
+"""The `sim` HAL backend: the MuJoCo twin (this package) stepped once per control period.
 
-The emulated drives (`server.sim.drives`) run a position loop with velocity and force limits, their own
+The emulated drives (`server.hal.sim.drives`) run a position loop with velocity and force limits, their own
 quick stop and holding brake, and report CiA 402 states per axis. Each drive watches the set-points like a
 heartbeat consumer: when no write() arrives for `communication_timeout_s` of drive (simulation) time while
 enabled, every drive quick-stops by itself and faults, and the HAL enters FAULT. Homing is immediate (the
@@ -15,24 +15,24 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import Protocol
 
 import numpy as np
 
 from core.dynamics import PayloadModel
-from core.patient import PatientParameters
 from core.robot import TwinRobot
-from server.hal.base import AXIS_COUNT, DriveState, HalCommand, HalError, HalReading, HalState, HardwareInterface
-from server.sim.drives import ServoParameters
-from server.sim.mjcf import SimModelOptions
-from server.sim.simulator import SimulatorOptions, TwinSimulator
-
-
-class PatientLike(Protocol):
-    """What `attach_patient` needs (server.realtime.prescription.PatientSetup has it)."""
-
-    parameters: PatientParameters
-    seed: int
+from server.hal.base import (
+    AXIS_COUNT,
+    DriveState,
+    HalCommand,
+    HalError,
+    HalReading,
+    HalState,
+    HardwareInterface,
+    PatientLike,
+)
+from server.hal.sim.drives import ServoParameters
+from server.hal.sim.mjcf import SimModelOptions
+from server.hal.sim.simulator import SimulatorOptions, TwinSimulator
 
 
 class SimHal(HardwareInterface):

@@ -17,7 +17,7 @@ import numpy as np
 
 from core.dynamics import LegMotion, PlatformMotion, StanceTrajectory, TwinInverseDynamics
 from core.robot import TwinRobot
-from server.sim.mjcf import SimModelOptions, neutral_rod_vectors, twin_mjcf
+from server.hal.sim.mjcf import SimModelOptions, neutral_rod_vectors, twin_mjcf
 
 
 @dataclass(frozen=True)
