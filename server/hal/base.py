@@ -12,6 +12,11 @@ Lifecycle, after ros2_control's hardware interface:
 set-point outside the stroke or a jump beyond one tick's travel is refused with `CommandRejectedError`
 (field, value, limit), nothing reaches a drive, and the HAL quick-stops into FAULT.
 
+Optional capabilities are declared here, with a default every backend inherits, so callers never probe
+for attributes: `simulates_patient` / `attach_patient()` (backends whose platforms are simulated),
+`drain_events()` (bus and drive events; none by default) and `wait_for_feedback()` (for backends whose
+readings arrive asynchronously; immediate by default).
+
 Axis order: twelve axes, the right robot's sliders 1–6 then the left robot's 1–6 (REFERENCE.md order).
 Positions are metres along each rail in that robot's base frame.
 """
@@ -21,7 +26,7 @@ from __future__ import annotations
 import abc
 import enum
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numba
 import numpy as np
@@ -92,8 +97,11 @@ class DriveState(enum.IntEnum):
 class PatientLike(Protocol):
     """What `attach_patient` needs (server.realtime.prescription.PatientSetup has it)."""
 
-    parameters: PatientParameters
-    seed: int
+    @property
+    def parameters(self) -> PatientParameters: ...
+
+    @property
+    def seed(self) -> int: ...
 
 
 class HalError(RuntimeError):
@@ -133,6 +141,9 @@ class HalReading:
 
 class HardwareInterface(abc.ABC):
     """One backend for the twelve slider axes and the sensors. Subclasses implement the `_` hooks."""
+
+    # Whether the platforms carry a simulated patient (`attach_patient`); real drives carry a real one.
+    simulates_patient: ClassVar[bool] = False
 
     def __init__(self, twin: TwinRobot, control_period_s: float) -> None:
         if not 0.0 < control_period_s <= 0.01:
@@ -210,6 +221,22 @@ class HardwareInterface(abc.ABC):
         """Home every axis (CiA 402 homing on drives; immediate on the sim and kinematic backends)."""
         self._require(HalState.CONFIGURED, "home")
         self._on_home()
+
+    # --- optional capabilities ---------------------------------------------------------------------
+
+    def attach_patient(self, patient: PatientLike | None) -> None:
+        """Put a simulated patient on the platforms (None takes it off). Only a backend that
+        `simulates_patient` can: on any other this is a programming error, and it is refused."""
+        raise HalError(f"attach_patient: the {type(self).__name__} backend does not simulate a patient")
+
+    def drain_events(self) -> list[dict[str, Any]]:
+        """Backend events (bus faults, drive EMCYs…) since the last drain, oldest first; none by default."""
+        return []
+
+    def wait_for_feedback(self, timeout_s: float) -> bool:
+        """Block until the answers to the last cycle sent have arrived; True when they have. A backend whose
+        read() computes its answer at once has nothing to wait for."""
+        return True
 
     # --- cyclic ------------------------------------------------------------------------------------
 

@@ -19,9 +19,12 @@ from core.patient import SimulatedPatient
 from core.robot import TwinRobot
 from core.twin_kernels import TwinKernels
 from server.hal.base import AXIS_COUNT, DriveState, HalCommand, HalReading, HalState, HardwareInterface, PatientLike
+from server.hal.canopen.cia402 import DriveStateMachines
 
 
 class KinematicHal(HardwareInterface):
+    simulates_patient = True
+
     def __init__(self, twin: TwinRobot, control_period_s: float, *, communication_timeout_s: float = 0.05) -> None:
         super().__init__(twin, control_period_s)
         self.communication_timeout_ns = int(communication_timeout_s * 1e9)
@@ -29,7 +32,7 @@ class KinematicHal(HardwareInterface):
         self._positions = self._kernels.neutral_sliders()
         self._velocities = np.zeros(AXIS_COUNT)
         self._forces = np.zeros(AXIS_COUNT)
-        self._drive_states = np.full(AXIS_COUNT, DriveState.NOT_READY_TO_SWITCH_ON, dtype=np.int8)
+        self._drives: DriveStateMachines | None = None  # the drives boot at configure()
         self._homed = np.zeros(AXIS_COUNT, dtype=bool)
         self.last_write_ns: int | None = None
         self.writes = 0
@@ -51,33 +54,42 @@ class KinematicHal(HardwareInterface):
 
     # --- lifecycle hooks ---------------------------------------------------------------------------
 
-    def _set_drive_states(self, state: DriveState) -> None:
-        self._drive_states[:] = state
+    @property
+    def drive_states(self) -> np.ndarray:
+        """Every axis's CiA 402 state now (a copy), without a read()."""
+        return self._drive_machines().states.copy()
+
+    def _drive_machines(self) -> DriveStateMachines:
+        assert self._drives is not None, "read() and the lifecycle hooks run only once configured"
+        return self._drives
 
     def _on_configure(self) -> None:
-        self._set_drive_states(DriveState.SWITCH_ON_DISABLED)
+        self._drives = DriveStateMachines(AXIS_COUNT)
 
     def _on_home(self) -> None:
         self._homed[:] = True
 
     def _on_activate(self) -> None:
-        self._set_drive_states(DriveState.OPERATION_ENABLED)
+        self._drive_machines().command(DriveState.OPERATION_ENABLED)
         self.last_write_ns = time.perf_counter_ns()
 
     def _on_deactivate(self) -> None:
         self._velocities[:] = 0.0
-        self._set_drive_states(DriveState.READY_TO_SWITCH_ON)
+        self._drive_machines().disable()
 
     def _on_quick_stop(self) -> None:
         self._velocities[:] = 0.0  # ideal drives stop at once, where they are
-        self._set_drive_states(DriveState.QUICK_STOP_ACTIVE)
+        self._drive_machines().quick_stop()
 
     def _on_disable(self) -> None:
         self._forces[:] = 0.0
-        self._set_drive_states(DriveState.SWITCH_ON_DISABLED)
+        self._drive_machines().disable()
 
     def _on_reset_fault(self) -> None:
-        self._set_drive_states(DriveState.SWITCH_ON_DISABLED)
+        self._drive_machines().command(DriveState.SWITCH_ON_DISABLED, reset_faults=True)
+
+    def _on_shutdown(self) -> None:
+        self._drives = None
 
     # --- cyclic hooks ------------------------------------------------------------------------------
 
@@ -89,7 +101,9 @@ class KinematicHal(HardwareInterface):
         if silent_ns <= self.communication_timeout_ns:
             return False
         self.fault(f"communication lost: no set-point for {silent_ns * 1e-6:.1f} ms")
-        self._set_drive_states(DriveState.FAULT)
+        drives = self._drive_machines()
+        drives.fault()  # each drive's own reaction; an ideal drive is at standstill at once
+        drives.internal(DriveState.FAULT_REACTION_ACTIVE, DriveState.FAULT)
         return True
 
     def _on_write(self, command: HalCommand) -> None:
@@ -108,7 +122,7 @@ class KinematicHal(HardwareInterface):
         out.positions_m[:] = self._positions
         out.velocities_m_s[:] = self._velocities if self.state is HalState.ACTIVE else 0.0
         out.drive_forces_n[:] = self._forces
-        out.drive_states[:] = self._drive_states
+        out.drive_states[:] = self._drive_machines().states
         out.homed[:] = self._homed
         self._step_patient(out)
         out.monotonic_ns = time.perf_counter_ns()

@@ -160,9 +160,8 @@ class TickPipeline:
         payload = plan.patient.payload() if plan.patient else None
         self.dynamics = TwinInverseDynamics(self.twin, payload)
         self.fall_monitor = FallMonitor(plan.patient.fall_detectors, self.period_s) if plan.patient else None
-        attach = getattr(self.hal, "attach_patient", None)
-        if attach is not None:
-            attach(plan.patient)
+        if self.hal.simulates_patient:
+            self.hal.attach_patient(plan.patient)
         self.plan, self.segments = plan, segments
         self.supervisor.load()
         self._emit("prescription_loaded", {"segments": len(segments), "patient": plan.patient is not None}, None)

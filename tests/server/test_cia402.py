@@ -109,3 +109,30 @@ def test_pdo_codec_round_trip_and_frame_limit() -> None:
     # Worst-case stuffed frame lengths: 8 data bytes → 135 bits, SYNC (no data) → 55 bits.
     assert frame_bits(8) == 135 and frame_bits(0) == 55
     assert cycle_bus_bits(12, od) == 55 + 12 * (frame_bits(7) + frame_bits(8) + frame_bits(7))
+
+
+@pytest.mark.parametrize(
+    ("source", "number"), [(DriveState.READY_TO_SWITCH_ON, 7), (DriveState.SWITCHED_ON, 10)], ids=["t7", "t10"]
+)
+def test_quick_stop_command_disables_voltage_before_operation_is_enabled(source: DriveState, number: int) -> None:
+    """CiA 402 §6.2: transitions 7 and 10 are taken on "quick stop" (0x02) as well as on "disable voltage"."""
+    taken = cia402.commanded_transition(source, 0x0002, previous_controlword=cia402.HOLD_CONTROLWORD[source])
+    assert taken is not None, f"{source.name} ignored the quick stop command 0x0002"
+    assert (taken.number, taken.target) == (number, DriveState.SWITCH_ON_DISABLED)
+
+
+@pytest.mark.parametrize("option", range(9))
+def test_enable_operation_leaves_quick_stop_only_under_a_stay_option(option: int) -> None:
+    """Transition 16 exists only when 0x605A is 5–8 (stop, then stay in QUICK STOP ACTIVE)."""
+    taken = cia402.commanded_transition(
+        DriveState.QUICK_STOP_ACTIVE, 0x000F, previous_controlword=0x0002, quick_stop_option=option
+    )
+    if option in (5, 6, 7, 8):
+        assert taken is not None and taken.number == 16
+    else:
+        assert taken is None
+    completion = cia402.quick_stop_completion(option)
+    if option in (5, 6, 7, 8):
+        assert completion is None  # stays, holding
+    else:
+        assert completion is not None and (completion.number, completion.target) == (12, DriveState.SWITCH_ON_DISABLED)

@@ -52,7 +52,7 @@ def test_lifecycle_and_drive_states(twin: TwinRobot) -> None:
     hal.configure()
     hal.read(reading)
     assert hal.state is HalState.CONFIGURED
-    assert np.all(reading.drive_states == DriveState.READY_TO_SWITCH_ON)
+    assert np.all(reading.drive_states == DriveState.SWITCH_ON_DISABLED)  # as every backend (CiA 402 table)
     assert not reading.homed.any()
     hal.home()
     hal.activate()
@@ -64,7 +64,7 @@ def test_lifecycle_and_drive_states(twin: TwinRobot) -> None:
     for _ in range(200):  # brakes on: the platforms stay where they were
         hal.read(reading)
     assert hal.state is HalState.CONFIGURED
-    assert np.all(reading.drive_states == DriveState.READY_TO_SWITCH_ON)
+    assert np.all(reading.drive_states == DriveState.SWITCH_ON_DISABLED)  # as every backend (CiA 402 table)
     assert np.max(np.abs(reading.positions_m - held)) < 3e-4
     hal.shutdown()
     assert hal.state is HalState.UNCONFIGURED
@@ -124,7 +124,7 @@ def test_fault_reset_returns_to_configured_with_brakes(active: tuple[SimHal, Hal
     hal.reset_fault()
     hal.read(reading)
     assert hal.state is HalState.CONFIGURED
-    assert np.all(reading.drive_states == DriveState.READY_TO_SWITCH_ON)
+    assert np.all(reading.drive_states == DriveState.SWITCH_ON_DISABLED)  # as every backend (CiA 402 table)
 
 
 def _step_response(twin: TwinRobot, servo: ServoParameters, step_m: float, ticks: int) -> tuple[np.ndarray, HalReading]:

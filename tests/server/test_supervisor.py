@@ -171,7 +171,7 @@ def test_emergency_stop_from_every_state_latches_and_reset_never_restarts_motion
     assert harness.state is S.ESTOP
     assert harness.pipeline.supervisor.estop_latched
     assert harness.hal.state is HalState.ESTOP
-    assert set(harness.hal._drive_states) == {DriveState.SWITCH_ON_DISABLED}
+    assert set(harness.hal.drive_states) == {DriveState.SWITCH_ON_DISABLED}
     positions = harness.hal._positions.copy()
     with pytest.raises(TransitionRefused):
         harness.pipeline.start()  # latched: nothing starts until an explicit reset

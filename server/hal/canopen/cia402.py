@@ -2,8 +2,10 @@
 
 The state machine is one transition table, (state, target) → controlword, after `being/can/cia_402.py`.
 The master finds its way between any two states with a breadth-first search over that table; the
-simulated drive runs the same table backwards, decoding a received controlword into the transition it
-commands. States are `server.hal.base.DriveState`, so the HAL reports exactly what the drives report.
+simulated drives run the same table backwards, decoding a received controlword into the transition it
+commands. Every simulated drive follows this one table: the simulated CANopen drive, the MuJoCo servo
+drives and the kinematic backend's ideal drives (`DriveStateMachines`). States are
+`server.hal.base.DriveState`, so the HAL reports exactly what the drives report.
 """
 
 from __future__ import annotations
@@ -92,6 +94,12 @@ class QuickStopOption(enum.IntEnum):
     QUICK_STOP_RAMP_AND_STAY = 6
 
 
+# 0x605A codes after which a quick-stopped drive stays in QUICK STOP ACTIVE (transition 16 possible); with
+# the others (0–4) it goes on to SWITCH ON DISABLED by itself once stopped (transition 12).
+QUICK_STOP_STAY_OPTIONS = frozenset({5, 6, 7, 8})
+QUICK_STOP_DISABLE_OPTIONS = frozenset({0, 1, 2, 3, 4})
+
+
 class AbortConnectionOption(enum.IntEnum):
     """0x6007: what the drive does when it loses the master (heartbeat consumer timeout)."""
 
@@ -138,7 +146,8 @@ class Transition:
     `controlword` is what the master sends; a drive takes the transition when
     `received & match_mask == controlword & match_mask`. Internal transitions (taken by the drive
     itself: boot, fault, end of a ramp) have no controlword. `rising_edge` marks fault reset,
-    which only acts on a 0 → 1 change of bit 7.
+    which only acts on a 0 → 1 change of bit 7. `quick_stop_options`: the 0x605A codes under which
+    the transition exists (None: under every code).
     """
 
     number: int
@@ -148,9 +157,18 @@ class Transition:
     controlword: int | None
     match_mask: int = 0
     rising_edge: bool = False
+    quick_stop_options: frozenset[int] | None = None
+
+    def exists_under(self, quick_stop_option: int | None) -> bool:
+        """Whether a drive with this 0x605A code has the transition (None: the code is not known)."""
+        return (
+            self.quick_stop_options is None or quick_stop_option is None or quick_stop_option in self.quick_stop_options
+        )
 
 
 S = DriveState
+# The states a drive-internal fault leaves by transition 13 (every state outside the fault states).
+FAULTABLE_STATES = (S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, S.SWITCHED_ON, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE)
 TRANSITIONS: tuple[Transition, ...] = (
     Transition(1, S.NOT_READY_TO_SWITCH_ON, S.SWITCH_ON_DISABLED, "self-test done", None),
     Transition(2, S.SWITCH_ON_DISABLED, S.READY_TO_SWITCH_ON, "shutdown", 0x0006, 0x0087),
@@ -159,17 +177,38 @@ TRANSITIONS: tuple[Transition, ...] = (
     Transition(4, S.SWITCHED_ON, S.OPERATION_ENABLED, "enable operation", 0x000F, 0x008F),
     Transition(5, S.OPERATION_ENABLED, S.SWITCHED_ON, "disable operation", 0x0007, 0x008F),
     Transition(6, S.SWITCHED_ON, S.READY_TO_SWITCH_ON, "shutdown", 0x0006, 0x0087),
+    # Transitions 7 and 10 are taken on "disable voltage" and on "quick stop" alike (§6.2, table 28).
     Transition(7, S.READY_TO_SWITCH_ON, S.SWITCH_ON_DISABLED, "disable voltage", 0x0000, 0x0082),
+    Transition(7, S.READY_TO_SWITCH_ON, S.SWITCH_ON_DISABLED, "quick stop", 0x0002, 0x0086),
     Transition(8, S.OPERATION_ENABLED, S.READY_TO_SWITCH_ON, "shutdown", 0x0006, 0x0087),
     Transition(9, S.OPERATION_ENABLED, S.SWITCH_ON_DISABLED, "disable voltage", 0x0000, 0x0082),
     Transition(10, S.SWITCHED_ON, S.SWITCH_ON_DISABLED, "disable voltage", 0x0000, 0x0082),
+    Transition(10, S.SWITCHED_ON, S.SWITCH_ON_DISABLED, "quick stop", 0x0002, 0x0086),
     Transition(11, S.OPERATION_ENABLED, S.QUICK_STOP_ACTIVE, "quick stop", 0x0002, 0x0086),
     Transition(12, S.QUICK_STOP_ACTIVE, S.SWITCH_ON_DISABLED, "disable voltage", 0x0000, 0x0082),
+    Transition(
+        12,
+        S.QUICK_STOP_ACTIVE,
+        S.SWITCH_ON_DISABLED,
+        "quick stop done",
+        None,
+        quick_stop_options=QUICK_STOP_DISABLE_OPTIONS,
+    ),
+    *(Transition(13, source, S.FAULT_REACTION_ACTIVE, "fault", None) for source in FAULTABLE_STATES),
     Transition(14, S.FAULT_REACTION_ACTIVE, S.FAULT, "fault reaction done", None),
     Transition(15, S.FAULT, S.SWITCH_ON_DISABLED, "fault reset", 0x0080, 0x0080, rising_edge=True),
-    Transition(16, S.QUICK_STOP_ACTIVE, S.OPERATION_ENABLED, "enable operation", 0x000F, 0x008F),
+    Transition(
+        16,
+        S.QUICK_STOP_ACTIVE,
+        S.OPERATION_ENABLED,
+        "enable operation",
+        0x000F,
+        0x008F,
+        quick_stop_options=QUICK_STOP_STAY_OPTIONS,
+    ),
 )
 del S
+FAULT_RESET_TRANSITION = 15
 
 # The controlword that keeps a drive where it is (no transition out of that state matches it).
 HOLD_CONTROLWORD: dict[DriveState, int] = {
@@ -212,8 +251,11 @@ def statusword_for(state: DriveState) -> int:
 
 
 @cache
-def transition_path(source: DriveState, target: DriveState) -> tuple[Transition, ...]:
-    """Shortest sequence of commanded transitions from `source` to `target` (breadth-first search).
+def transition_path(
+    source: DriveState, target: DriveState, quick_stop_option: int | None = None
+) -> tuple[Transition, ...]:
+    """Shortest sequence of commanded transitions from `source` to `target` (breadth-first search),
+    for a drive with 0x605A = `quick_stop_option` (None: any).
 
     Raises ValueError when the table holds no commanded path (e.g. into FAULT, which only the
     drive itself can enter).
@@ -227,6 +269,8 @@ def transition_path(source: DriveState, target: DriveState) -> tuple[Transition,
         for transition in TRANSITIONS:
             if transition.source != state or transition.controlword is None or transition.target in parents:
                 continue
+            if not transition.exists_under(quick_stop_option):
+                continue
             if transition.target == source:
                 continue
             parents[transition.target] = transition
@@ -239,7 +283,9 @@ def transition_path(source: DriveState, target: DriveState) -> tuple[Transition,
     raise ValueError(f"no commanded CiA 402 path from {source.name} to {target.name}")
 
 
-def next_controlword(current: DriveState, target: DriveState, previous_controlword: int) -> int:
+def next_controlword(
+    current: DriveState, target: DriveState, previous_controlword: int, quick_stop_option: int | None = None
+) -> int:
     """The controlword that moves a drive one step from `current` towards `target`.
 
     A fault reset needs a rising edge of bit 7, so after a reset that did not take (bit 7 still set)
@@ -247,17 +293,22 @@ def next_controlword(current: DriveState, target: DriveState, previous_controlwo
     """
     if current == target:
         return HOLD_CONTROLWORD[current]
-    step = transition_path(current, target)[0]
+    step = transition_path(current, target, quick_stop_option)[0]
     assert step.controlword is not None  # transition_path only returns commanded transitions
     if step.rising_edge and previous_controlword & step.match_mask:
         return HOLD_CONTROLWORD[current]
     return step.controlword
 
 
-def commanded_transition(current: DriveState, controlword: int, previous_controlword: int) -> Transition | None:
-    """The transition a drive in `current` takes on receiving `controlword` (None: stay)."""
+def commanded_transition(
+    current: DriveState, controlword: int, previous_controlword: int, quick_stop_option: int | None = None
+) -> Transition | None:
+    """The transition a drive in `current` with 0x605A = `quick_stop_option` takes on receiving
+    `controlword` (None: stay)."""
     for transition in TRANSITIONS:
         if transition.source != current or transition.controlword is None:
+            continue
+        if not transition.exists_under(quick_stop_option):
             continue
         if controlword & transition.match_mask != transition.controlword & transition.match_mask:
             continue
@@ -268,8 +319,110 @@ def commanded_transition(current: DriveState, controlword: int, previous_control
 
 
 def internal_transition(source: DriveState, target: DriveState) -> Transition:
-    """The drive-initiated transition from `source` to `target` (boot, end of fault reaction)."""
+    """The drive-initiated transition from `source` to `target` (boot, fault, end of a ramp)."""
     for transition in TRANSITIONS:
         if transition.source == source and transition.target == target and transition.controlword is None:
             return transition
     raise ValueError(f"no internal CiA 402 transition from {source.name} to {target.name}")
+
+
+def quick_stop_completion(quick_stop_option: int) -> Transition | None:
+    """What a quick-stopped drive does by itself once at standstill: transition 12 to SWITCH ON
+    DISABLED under a disable option of 0x605A, None (stay, holding) under a stay option."""
+    for transition in TRANSITIONS:
+        if (
+            transition.source == DriveState.QUICK_STOP_ACTIVE
+            and transition.target == DriveState.SWITCH_ON_DISABLED
+            and transition.controlword is None
+            and transition.exists_under(quick_stop_option)
+        ):
+            return transition
+    return None
+
+
+def quick_stop_target(state: DriveState) -> DriveState:
+    """Where a master sends a drive on a quick stop: an enabled drive ramps down in QUICK STOP ACTIVE, a
+    stopping or faulted one carries on, any other is disabled."""
+    if state == DriveState.OPERATION_ENABLED:
+        return DriveState.QUICK_STOP_ACTIVE
+    if state == DriveState.QUICK_STOP_ACTIVE or state in FAULT_STATES:
+        return state
+    return DriveState.SWITCH_ON_DISABLED
+
+
+class DriveStateMachines:
+    """The power state machines of simulated drives, one per axis, changed only through `TRANSITIONS`.
+
+    `command()` is a master and a drive in one: the master's controlwords (`next_controlword`) walk the
+    table's path, and each is decoded as a drive decodes it (`commanded_transition`). `internal()` and
+    `fault()` are the drive's own transitions (self-test, fault, end of a ramp). The MuJoCo servo drives
+    and the kinematic backend use it, so every backend's drives agree with the simulated CANopen drive.
+    """
+
+    def __init__(self, count: int, quick_stop_option: int = QuickStopOption.QUICK_STOP_RAMP_AND_STAY) -> None:
+        self.states = np.full(count, DriveState.NOT_READY_TO_SWITCH_ON, dtype=np.int8)
+        self.quick_stop_option = quick_stop_option
+        self._controlwords = np.zeros(count, dtype=np.int64)
+        self.internal(DriveState.NOT_READY_TO_SWITCH_ON, DriveState.SWITCH_ON_DISABLED)  # self-test done
+
+    def _axes(self, axes: np.ndarray | None) -> np.ndarray:
+        return np.arange(self.states.size) if axes is None else np.flatnonzero(axes)
+
+    def command(self, target: DriveState, axes: np.ndarray | None = None, *, reset_faults: bool = False) -> None:
+        """Take each axis (all, or where the mask `axes` is set) to `target` by controlwords. An axis with
+        no commanded path stays; a faulted axis is reset (transition 15) only with `reset_faults`."""
+        for axis in self._axes(axes):
+            state = DriveState(int(self.states[axis]))
+            previous = int(self._controlwords[axis])
+            for _ in range(len(TRANSITIONS)):  # at most one pass over the table; a rising edge needs two words
+                if state == target:
+                    break
+                try:
+                    step = transition_path(state, target, self.quick_stop_option)[0]
+                except ValueError:
+                    break
+                if step.number == FAULT_RESET_TRANSITION and not reset_faults:
+                    break
+                word = next_controlword(state, target, previous, self.quick_stop_option)
+                taken = commanded_transition(state, word, previous, self.quick_stop_option)
+                previous = word
+                if taken is not None:
+                    state = taken.target
+            self.states[axis] = state
+            self._controlwords[axis] = previous
+
+    def internal(self, source: DriveState, target: DriveState, axes: np.ndarray | None = None) -> None:
+        """The drive-initiated transition `source` → `target` on each axis (of the mask) that is in `source`."""
+        transition = internal_transition(source, target)
+        chosen = self.states == transition.source
+        if axes is not None:
+            chosen &= axes
+        self.states[chosen] = transition.target
+
+    def quick_stop(self, axes: np.ndarray | None = None) -> None:
+        for axis in self._axes(axes):
+            self.command(quick_stop_target(DriveState(int(self.states[axis]))), self._one(axis))
+
+    def quick_stop_done(self, axes: np.ndarray) -> None:
+        """The quick-stop ramp ended on these axes: transition 12 under a disable option, else they stay."""
+        completion = quick_stop_completion(self.quick_stop_option)
+        if completion is not None:
+            self.internal(completion.source, completion.target, axes)
+
+    def fault(self, axes: np.ndarray | None = None) -> None:
+        """A drive-internal fault (transition 13) on each axis (of the mask) not already faulted."""
+        for source in FAULTABLE_STATES:
+            self.internal(source, DriveState.FAULT_REACTION_ACTIVE, axes)
+
+    def disable(self, axes: np.ndarray | None = None) -> None:
+        """Power off every axis (of the mask) that is not faulted: a disable never resets a fault."""
+        powered = ~np.isin(self.states, [DriveState.FAULT_REACTION_ACTIVE, DriveState.FAULT])
+        self.command(DriveState.SWITCH_ON_DISABLED, powered if axes is None else powered & axes)
+
+    def _one(self, axis: int) -> np.ndarray:
+        mask = np.zeros(self.states.size, dtype=bool)
+        mask[axis] = True
+        return mask
+
+    def in_state(self, state: DriveState) -> np.ndarray:
+        return self.states == state

@@ -743,14 +743,7 @@ class CanopenHal(HardwareInterface):
     def _on_quick_stop(self) -> None:
         """Quick stop (0x605A = 6: ramp at 0x6085, stay in QUICK STOP ACTIVE) on every powered axis."""
         self._expect_operation_enabled = False
-        for axis in range(AXIS_COUNT):
-            state = DriveState(int(self.drive_states[axis]))
-            if state == DriveState.OPERATION_ENABLED:
-                self.target_states[axis] = DriveState.QUICK_STOP_ACTIVE
-            elif state not in (DriveState.QUICK_STOP_ACTIVE, *cia402.FAULT_STATES):
-                self.target_states[axis] = DriveState.SWITCH_ON_DISABLED
-            else:
-                self.target_states[axis] = state
+        self.target_states = [cia402.quick_stop_target(DriveState(int(s))) for s in self.drive_states]
         self._homing_start[:] = False
         self._event("quick_stop", "quick stop commanded on every axis", reason=self.last_fault)
         self._transmit_cycle()

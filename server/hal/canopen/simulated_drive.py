@@ -106,7 +106,7 @@ class SimulatedDrive:
         self._parameters: dict[tuple[int, int], int] = {}
         node.add_write_callback(self._on_sdo_write)
         node.add_read_callback(self._on_sdo_read)
-        self._enter(DriveState.SWITCH_ON_DISABLED, "self-test done")
+        self._take(cia402.internal_transition(DriveState.NOT_READY_TO_SWITCH_ON, DriveState.SWITCH_ON_DISABLED))
 
     # --- parameters (object dictionary) -----------------------------------------------------------
 
@@ -216,7 +216,8 @@ class SimulatedDrive:
             self.homed = self._homing_attained = False
             self.home_reference_counts = self.true_position_counts
             self.error_code = 0
-            self._enter(DriveState.SWITCH_ON_DISABLED, "reset node")
+            self._enter(DriveState.NOT_READY_TO_SWITCH_ON, "reset node")
+            self._take(cia402.internal_transition(DriveState.NOT_READY_TO_SWITCH_ON, DriveState.SWITCH_ON_DISABLED))
 
     def _load_pdo_mapping(self) -> None:
         """Read the mapping the master wrote (0x1400/0x1600, 0x1800/0x1A00) and build codecs from it."""
@@ -273,8 +274,13 @@ class SimulatedDrive:
             self.inject_fault(cia402.EMCY_HEARTBEAT_LOST)
         else:
             self._emergency(cia402.EMCY_HEARTBEAT_LOST)
-            if option == cia402.AbortConnectionOption.QUICK_STOP and self.state == DriveState.OPERATION_ENABLED:
-                self._enter(DriveState.QUICK_STOP_ACTIVE, "heartbeat lost")
+            if option == cia402.AbortConnectionOption.QUICK_STOP:  # as if the master had sent "quick stop"
+                quick_stop = cia402.HOLD_CONTROLWORD[DriveState.QUICK_STOP_ACTIVE]
+                stop = cia402.commanded_transition(
+                    self.state, quick_stop, self._controlword, self.parameter(cia402.QUICK_STOP_OPTION_CODE)
+                )
+                if stop is not None:
+                    self._enter(stop.target, "heartbeat lost")
 
     # --- faults -------------------------------------------------------------------------------------
 
@@ -293,10 +299,11 @@ class SimulatedDrive:
             return
         self.error_code = code
         self._emergency(code)
-        self._enter(DriveState.FAULT_REACTION_ACTIVE, cia402.describe_error_code(code))
+        fault = cia402.internal_transition(self.state, DriveState.FAULT_REACTION_ACTIVE)
+        self._enter(fault.target, cia402.describe_error_code(code))
         if self.velocity_counts_s == 0.0 or self.parameter(cia402.FAULT_REACTION_OPTION_CODE) == 0:
             self._stop_power()
-            self._enter(DriveState.FAULT, "fault reaction done")
+            self._take(cia402.internal_transition(DriveState.FAULT_REACTION_ACTIVE, DriveState.FAULT))
 
     # --- the cycle ----------------------------------------------------------------------------------
 
@@ -341,7 +348,8 @@ class SimulatedDrive:
 
     def _apply_controlword(self, controlword: int) -> None:
         previous, self._controlword = self._controlword, controlword
-        transition = cia402.commanded_transition(self.state, controlword, previous)
+        option = self.parameter(cia402.QUICK_STOP_OPTION_CODE)
+        transition = cia402.commanded_transition(self.state, controlword, previous, option)
         if transition is not None:
             if transition.number == 15 and self._heartbeat_lost:
                 return  # the cause persists: a fault reset cannot clear a lost master
@@ -361,6 +369,9 @@ class SimulatedDrive:
         self._target_counts = float(round(self.true_position_counts))
         self._reference_counts = self._target_counts
         self._feedforward_velocity = self._feedforward_acceleration = 0.0
+
+    def _take(self, transition: cia402.Transition) -> None:
+        self._enter(transition.target, transition.command)
 
     def _enter(self, state: DriveState, reason: str) -> None:
         if state != self.state:
@@ -429,13 +440,12 @@ class SimulatedDrive:
             return
         if self.state == DriveState.FAULT_REACTION_ACTIVE:
             self._stop_power()
-            self._enter(DriveState.FAULT, "fault reaction done")
-        elif self.parameter(cia402.QUICK_STOP_OPTION_CODE) in (
-            cia402.QuickStopOption.SLOW_DOWN_RAMP_THEN_DISABLE,
-            cia402.QuickStopOption.QUICK_STOP_RAMP_THEN_DISABLE,
-        ):
+            self._take(cia402.internal_transition(DriveState.FAULT_REACTION_ACTIVE, DriveState.FAULT))
+            return
+        completion = cia402.quick_stop_completion(self.parameter(cia402.QUICK_STOP_OPTION_CODE))
+        if completion is not None:
             self._stop_power()
-            self._enter(DriveState.SWITCH_ON_DISABLED, "quick stop done")
+            self._take(completion)
         else:
             self._hold_here()
 

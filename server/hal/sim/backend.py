@@ -36,6 +36,8 @@ from server.hal.sim.simulator import SimulatorOptions, TwinSimulator
 
 
 class SimHal(HardwareInterface):
+    simulates_patient = True
+
     def __init__(
         self,
         twin: TwinRobot,
@@ -89,8 +91,7 @@ class SimHal(HardwareInterface):
         return self.simulator
 
     def _build(self) -> None:
-        self.simulator = TwinSimulator(self.twin, self._options)
-        self.simulator.drives.ready()
+        self.simulator = TwinSimulator(self.twin, self._options)  # its drives boot into SWITCH ON DISABLED
 
     # --- lifecycle hooks ---------------------------------------------------------------------------
 

@@ -5,7 +5,9 @@ velocity loop (PI, with force feed-forward and anti-windup) → force (current) 
 MuJoCo's actuator force range. Power off engages the
 holding brake (a stiff spring-damper with its own force limit). A quick stop ramps the reference speed
 down at the quick-stop deceleration and then holds. Heartbeat loss is each drive's own fault reaction:
-the quick-stop ramp, then FAULT with the brake on. State per axis is `server.hal.base.DriveState`.
+the quick-stop ramp, then FAULT with the brake on. State per axis is `server.hal.base.DriveState`, changed
+only through the CiA 402 transition table (`cia402.DriveStateMachines`): the compiled loop reports where a
+ramp ended, and the table decides the state that follows.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numba
 import numpy as np
 
 from server.hal.base import AXIS_COUNT, DriveState
+from server.hal.canopen.cia402 import DriveStateMachines
 
 
 @dataclass(frozen=True)
@@ -39,8 +42,6 @@ class ServoParameters:
 ENABLED = int(DriveState.OPERATION_ENABLED)
 QUICK_STOP = int(DriveState.QUICK_STOP_ACTIVE)
 FAULT_REACTION = int(DriveState.FAULT_REACTION_ACTIVE)
-FAULT = int(DriveState.FAULT)
-SWITCH_ON_DISABLED = int(DriveState.SWITCH_ON_DISABLED)
 _STOPPING = np.array([DriveState.QUICK_STOP_ACTIVE, DriveState.FAULT_REACTION_ACTIVE], dtype=np.int8)
 
 
@@ -49,7 +50,8 @@ class ServoDrives:
 
     def __init__(self, params: ServoParameters) -> None:
         self.params = params
-        self.states = np.full(AXIS_COUNT, DriveState.SWITCH_ON_DISABLED, dtype=np.int8)
+        self.machines = DriveStateMachines(AXIS_COUNT)  # boots into SWITCH ON DISABLED
+        self.states = self.machines.states  # the same array: the loop reads it, only the table writes it
         self.target_m = np.zeros(AXIS_COUNT)
         self.velocity_feedforward_m_s = np.zeros(AXIS_COUNT)
         self.force_feedforward_n = np.zeros(AXIS_COUNT)
@@ -61,6 +63,7 @@ class ServoDrives:
         self.bias = np.zeros((AXIS_COUNT, 3))
         self.force_range_n = np.full(AXIS_COUNT, params.force_limit_n)
         self.disable_after_stop = np.zeros(AXIS_COUNT, dtype=bool)
+        self.ramp_done = np.zeros(AXIS_COUNT, dtype=bool)
         self._scratch = np.zeros(AXIS_COUNT)
         self._command = np.zeros(AXIS_COUNT)
         self._gains = np.array(
@@ -77,48 +80,57 @@ class ServoDrives:
             ]
         )
 
-    # --- CiA 402 transitions (every axis at once) --------------------------------------------------------
-
-    def ready(self) -> None:
-        """Shutdown command: SWITCH ON DISABLED → READY TO SWITCH ON (power still off, brake on)."""
-        self.states[:] = DriveState.READY_TO_SWITCH_ON
+    # --- CiA 402 transitions (every axis at once, through the table) -----------------------------------
 
     def enable(self, positions_m: np.ndarray) -> None:
-        """Switch on + enable operation, holding the present position."""
+        """Shutdown, switch on, enable operation (transitions 2, 3, 4), holding the present position."""
         self.target_m[:] = positions_m
         self.velocity_feedforward_m_s[:] = 0.0
         self.force_feedforward_n[:] = 0.0
         self.integrator_n[:] = 0.0
         self.disable_after_stop[:] = False
-        self.states[:] = DriveState.OPERATION_ENABLED
+        self.machines.command(DriveState.OPERATION_ENABLED)
 
     def disable(self, positions_m: np.ndarray) -> None:
-        """Disable operation: brake on where the axis stands (axes still ramping finish their stop first)."""
+        """Disable voltage: brake on where the axis stands (axes still ramping finish their stop first)."""
         stopping = np.isin(self.states, _STOPPING)
         self.disable_after_stop |= stopping
         moving = ~stopping & (self.states == DriveState.OPERATION_ENABLED)
         self.brake_position_m[moving] = positions_m[moving]
-        self.states[moving] = DriveState.READY_TO_SWITCH_ON
+        self.machines.disable(~stopping)
 
     def quick_stop(self, positions_m: np.ndarray, velocities_m_s: np.ndarray, *, fault: bool = False) -> None:
-        """Start the quick-stop ramp on every enabled axis (as a fault reaction with `fault`)."""
+        """Start the quick-stop ramp on every enabled axis (transition 11; with `fault`, the fault reaction
+        of transition 13, and a drive with power off faults at once, brake on)."""
         enabled = self.states == DriveState.OPERATION_ENABLED
         self.target_m[enabled] = positions_m[enabled]
         self.reference_velocity_m_s[enabled] = velocities_m_s[enabled]
         self.velocity_feedforward_m_s[enabled] = 0.0
         self.force_feedforward_n[enabled] = 0.0
-        self.states[enabled] = DriveState.FAULT_REACTION_ACTIVE if fault else DriveState.QUICK_STOP_ACTIVE
-        if fault:  # a drive with power off faults at once, brake on
-            idle = ~enabled & ~np.isin(self.states, _STOPPING)
-            self.states[idle] = DriveState.FAULT
+        if not fault:
+            self.machines.quick_stop(enabled)
+            return
+        idle = ~enabled & ~np.isin(self.states, _STOPPING)
+        self.machines.fault(enabled | idle)
+        self.machines.internal(DriveState.FAULT_REACTION_ACTIVE, DriveState.FAULT, idle)
 
     def reset_fault(self, positions_m: np.ndarray) -> None:
-        """Fault reset, then shutdown: every axis READY TO SWITCH ON, braked where it stands."""
+        """Fault reset and disable voltage: every axis SWITCH ON DISABLED, braked where it stands (an axis
+        still in its fault reaction finishes it first: the table has no commanded way out)."""
         powered = (self.states >= ENABLED) & (self.states <= FAULT_REACTION)
         self.brake_position_m[powered] = positions_m[powered]
         self.reference_velocity_m_s[:] = 0.0
         self.disable_after_stop[:] = False
-        self.ready()
+        self.machines.command(DriveState.SWITCH_ON_DISABLED, reset_faults=True)
+
+    def _end_ramps(self) -> None:
+        """Ramps the loop finished this step: the fault reaction ends in FAULT (14), a quick stop with a
+        pending disable in SWITCH ON DISABLED (12, the disable held until standstill), brake on."""
+        done = self.ramp_done
+        self.machines.internal(DriveState.FAULT_REACTION_ACTIVE, DriveState.FAULT, done)
+        self.machines.command(DriveState.SWITCH_ON_DISABLED, done & self.disable_after_stop)
+        self.disable_after_stop[done] = False
+        done[:] = False
 
     def set_command(self, positions_m: np.ndarray, velocity_ff: np.ndarray, force_ff: np.ndarray) -> None:
         enabled = self.states == DriveState.OPERATION_ENABLED
@@ -151,7 +163,10 @@ class ServoDrives:
             self.bias,
             self.force_range_n,
             self.forces_n,
+            self.ramp_done,
         )
+        if self.ramp_done.any():
+            self._end_ramps()
 
 
 @numba.njit(cache=True)
@@ -172,20 +187,24 @@ def _servo_step(
     bias: np.ndarray,
     force_range: np.ndarray,
     forces: np.ndarray,
+    ramp_done: np.ndarray,
 ) -> None:
+    """One physics step of every axis; `ramp_done[axis]` is set where a ramp that ends in power off (fault
+    reaction, quick stop with a pending disable) reached standstill: the brake holds it from this step, and
+    the caller changes the state through the transition table."""
     kp, kv, ki, v_max, f_max, decel, k_brake, c_brake, f_brake = gains
     for axis in range(states.shape[0]):
         state = states[axis]
+        powered = state in (ENABLED, QUICK_STOP, FAULT_REACTION)
         if state in (QUICK_STOP, FAULT_REACTION):
             speed = max(abs(ramp_velocity[axis]) - decel * dt, 0.0)
             ramp_velocity[axis] = np.sign(ramp_velocity[axis]) * speed
             target[axis] += ramp_velocity[axis] * dt
             if speed == 0.0 and (state == FAULT_REACTION or disable_after_stop[axis]):
                 brake_position[axis] = positions[axis]
-                states[axis] = FAULT if state == FAULT_REACTION else SWITCH_ON_DISABLED
-                disable_after_stop[axis] = False
-                state = states[axis]
-        if state in (ENABLED, QUICK_STOP, FAULT_REACTION):
+                ramp_done[axis] = True
+                powered = False
+        if powered:
             command = kp * (target[axis] - positions[axis]) + velocity_ff[axis] + ramp_velocity[axis]
             command = min(max(command, -v_max), v_max)
             error = command - velocities[axis]
