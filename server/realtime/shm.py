@@ -2,11 +2,16 @@
 
 Seqlock (one writer, many readers): the writer makes the sequence odd, copies the record, makes it
 even again; a reader copies the record between two reads of the sequence and retries if they differ
-or are odd, so it never returns a torn record. Ring (one writer, one reader): the writer never waits:
-it writes slot `count % capacity` and only then publishes `count + 1`. The reader copies what was
-published and afterwards drops every record the writer may have lapped while it was copying, and
-counts them as lost. Both rely on aligned 8-byte stores being atomic and stores becoming visible in
-program order (x86-64 TSO); the sequence and count words sit at offset 0 of page-aligned blocks.
+or are odd, so it never returns a torn record. The seqlock does not trust the CPU's store order: a full
+memory barrier (`memory_barrier`, an LLVM `fence seq_cst` compiled by numba: `lock or` on x86-64,
+`dmb ish` on ARM64) separates each sequence update from the record copy on both sides, which is what the
+weakly ordered ARM memory model needs. It still needs aligned 8-byte stores to be single-copy atomic,
+so it refuses to start on a CPU not known to give that (`require_supported_cpu`: x86-64 and 64-bit ARM).
+Ring (one writer, one reader): the writer never waits: it writes slot `count % capacity` and only then
+publishes `count + 1`. The reader copies what was published and afterwards drops every record the
+writer may have lapped while it was copying, and counts them as lost. The ring and the control block
+still rely on stores becoming visible in program order (x86-64 TSO); the sequence and count words sit at
+offset 0 of page-aligned blocks.
 
 The creating process (the service side) owns the names and unlinks them; the worker attaches by name
 through /dev/shm so that Python's resource tracker never unlinks blocks it did not create.
@@ -17,12 +22,52 @@ from __future__ import annotations
 import contextlib
 import mmap
 import os
+import platform
 import time
 from multiprocessing import shared_memory
+from typing import Any
 
+import numba
 import numpy as np
+from numba.core import types
+from numba.extending import intrinsic
 
 _HEADER_BYTES = 64  # keeps the payload 8-byte aligned and the counters on their own cache line
+
+
+# CPUs (platform.machine() names) on which an aligned 8-byte store is single-copy atomic, so that the
+# fenced seqlock is correct: x86-64 (TSO) and 64-bit ARM (weakly ordered: the barriers make it correct).
+SEQLOCK_CPUS = frozenset({"x86_64", "amd64", "aarch64", "arm64"})
+
+
+class UnsupportedPlatformError(RuntimeError):
+    """The shared-memory seqlock cannot be trusted on this CPU."""
+
+
+def require_supported_cpu(machine: str | None = None) -> None:
+    """Refuse to share state on a CPU whose memory model the seqlock was not made for (32-bit ARM, for
+    one, may split an 8-byte store and tear the sequence word)."""
+    machine = platform.machine() if machine is None else machine
+    if machine.lower() not in SEQLOCK_CPUS:
+        raise UnsupportedPlatformError(
+            f"cpu = {machine!r}: the shared-memory seqlock needs atomic aligned 8-byte stores; supported CPUs "
+            f"are {sorted(SEQLOCK_CPUS)}. Run the console and the robot worker on one of them."
+        )
+
+
+@intrinsic
+def _fence(typingctx: object) -> tuple[object, object]:
+    def codegen(context: Any, builder: Any, signature: object, args: object) -> object:
+        builder.fence("seq_cst")
+        return context.get_dummy_value()
+
+    return types.void(), codegen
+
+
+@numba.njit(cache=True)
+def memory_barrier() -> None:
+    """A full hardware memory barrier: no load or store crosses it, in the compiler or in the CPU."""
+    _fence()  # type: ignore[call-arg]  # numba supplies the typing context
 
 
 class SharedBlock:
@@ -63,6 +108,8 @@ class Seqlock:
     """The latest record of `dtype`, written by one process and read without tearing by others."""
 
     def __init__(self, dtype: np.dtype, name: str | None = None) -> None:
+        require_supported_cpu()
+        memory_barrier()  # compiled (or loaded from numba's cache) now, never inside the first write
         self.dtype = dtype
         self.block = SharedBlock(_HEADER_BYTES + dtype.itemsize, name)
         self._sequence = np.ndarray((1,), np.uint64, self.block.buffer, 0)
@@ -75,8 +122,10 @@ class Seqlock:
 
     def write(self, record: np.ndarray) -> None:
         """Publish `record` (a (1,) array of `dtype`); allocation-free."""
-        self._sequence[0] += np.uint64(1)
+        self._sequence[0] += np.uint64(1)  # odd: a write is under way
+        memory_barrier()  # readers see the odd sequence before any byte of the new record
         self._record[:] = record
+        memory_barrier()  # ... and every byte of it before the even sequence
         self._sequence[0] += np.uint64(1)
 
     def read(self, timeout_s: float = 2.0) -> np.ndarray:
@@ -89,7 +138,9 @@ class Seqlock:
         while True:
             before = int(self._sequence[0])
             if not before & 1:
+                memory_barrier()  # the copy is not read ahead of the sequence ...
                 self._copy[:] = self._record
+                memory_barrier()  # ... nor behind its second read
                 if int(self._sequence[0]) == before:
                     return self._copy.copy()
             attempts += 1

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 
+from server.realtime import shm
 from server.realtime.shm import Seqlock, SharedRing
 from server.realtime.telemetry import TELEMETRY_DTYPE
 
@@ -121,3 +122,53 @@ def test_ring_reports_what_a_slow_reader_lost() -> None:
 def test_ring_capacity_must_be_a_power_of_two() -> None:
     with pytest.raises(ValueError, match="capacity"):
         SharedRing(TELEMETRY_DTYPE, 100)
+
+
+# --- the memory model: barriers and the CPU guard ------------------------------------------------------
+
+
+@pytest.mark.parametrize("machine", ["x86_64", "AMD64", "aarch64", "arm64"])
+def test_seqlock_starts_on_cpus_whose_8_byte_stores_are_atomic(machine: str) -> None:
+    shm.require_supported_cpu(machine)
+
+
+@pytest.mark.parametrize("machine", ["armv7l", "i686", "riscv64", "ppc64le", ""])
+def test_seqlock_refuses_an_unsupported_cpu_naming_it_and_creates_nothing(
+    machine: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with pytest.raises(shm.UnsupportedPlatformError, match=f"cpu = '{machine}'.*supported CPUs are"):
+        shm.require_supported_cpu(machine)
+    monkeypatch.setattr(shm.platform, "machine", lambda: machine)
+    created: list[object] = []
+    monkeypatch.setattr(shm, "SharedBlock", lambda *args: created.append(args))
+    with pytest.raises(shm.UnsupportedPlatformError):
+        Seqlock(TELEMETRY_DTYPE)
+    assert created == []  # refused before any shared memory exists
+
+
+def test_memory_barrier_is_a_hardware_fence() -> None:
+    shm.memory_barrier()
+    (signature,) = shm.memory_barrier.signatures
+    assert "fence seq_cst" in shm.memory_barrier.inspect_llvm(signature)
+
+
+def test_seqlock_fences_the_record_copy_from_both_sequence_updates(monkeypatch: pytest.MonkeyPatch) -> None:
+    """At each barrier of a write: the sequence is already odd, and the record is old at the first, new
+    at the second; a reader fences between its sequence reads and its copy the same way."""
+    seqlock = Seqlock(TELEMETRY_DTYPE)
+    old, new = np.zeros(1, TELEMETRY_DTYPE), np.zeros(1, TELEMETRY_DTYPE)
+    _stamp(old, 1)
+    _stamp(new, 2)
+    try:
+        seqlock.write(old)
+        seen: list[tuple[int, int]] = []
+        monkeypatch.setattr(
+            shm, "memory_barrier", lambda: seen.append((seqlock.sequence, int(seqlock._record["tick"][0])))
+        )
+        seqlock.write(new)
+        assert seen == [(3, 1), (3, 2)]
+        seen.clear()
+        assert seqlock.read()["tick"][0] == 2
+        assert seen == [(4, 2), (4, 2)]
+    finally:
+        seqlock.close()
