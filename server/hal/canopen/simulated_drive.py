@@ -2,8 +2,14 @@
 
 Each drive answers SDO from its EDS, boots and follows NMT, takes its PDO mapping from what the master
 wrote into its object dictionary, and on every SYNC: integrates its servo over one communication
-cycle (0x1006) under the last latched command, latches the new RPDO (controlword through the shared
-`cia402` transition table, target position, mode), and answers with its TPDOs. The servo is a
+cycle (0x1006) under the last latched command, latches the new synchronous RPDO (controlword through
+the shared `cia402` transition table, target position, mode), and answers with its synchronous TPDOs.
+It is a standard drive for any master, not only this product's: the controlword, the mode (0x6060)
+and the target (0x607A) act when written by SDO or by an event-driven RPDO (transmission type 254/255)
+as they do from a SYNC-ed one; 0x6061 shows the mode in effect, and a mode it does not implement is
+refused (SDO abort 0x06090030; 0x6502 reports only the implemented modes); event-driven TPDOs are sent
+on change, at the event timer (sub-index 5) and no faster than the inhibit time (sub-index 3). A drive
+whose RPDOs are not synchronous runs on its own clock. The servo is a
 second-order position loop with velocity and acceleration feed-forward from the CSP targets, the way a
 drive interpolates between SYNCs. It homes (0x6098 methods 17, 18, 35, 37), ramps down on quick stop
 (0x605A) and fault reaction (0x605E) at 0x6085, faults on following error (0x6065/0x6066), and consumes
@@ -40,6 +46,9 @@ SDO_ABORT_VALUE_RANGE = 0x06090030
 NMT_START, NMT_RESET_NODE, NMT_RESET_COMMUNICATION = 0x01, 0x81, 0x82
 NMT_OPERATIONAL = "OPERATIONAL"
 SUPPORTED_HOMING_METHODS = frozenset({17, 18, 35, 37})
+IMPLEMENTED_MODES = (cia402.OperationMode.CYCLIC_SYNCHRONOUS_POSITION, cia402.OperationMode.HOMING)
+SYNCHRONOUS_TRANSMISSION = range(0, 241)  # CiA 301 transmission types that act on / answer SYNC
+EVENT_DRIVEN_TRANSMISSION = (254, 255)
 WATCHDOG_PERIOD_S = 0.005
 INTEGRATION_STEP_S = 0.001  # servo integration sub-step; semi-implicit Euler is stable for ωn·h = 0.25
 
@@ -58,6 +67,23 @@ class ServoModel:
 
 
 @dataclass
+class EventTpdo:
+    """An event-driven TPDO: sent when its frame changes, at the event timer, never within the inhibit time."""
+
+    codec: PdoCodec
+    inhibit_s: float
+    event_timer_s: float
+    last_frame: bytes | None = None
+    last_sent_s: float = -math.inf
+
+    def due(self, frame: bytes, now_s: float) -> bool:
+        if now_s - self.last_sent_s < self.inhibit_s:
+            return False
+        timer_expired = self.event_timer_s > 0.0 and now_s - self.last_sent_s >= self.event_timer_s
+        return frame != self.last_frame or timer_expired
+
+
+@dataclass
 class DriveTrace:
     """What a test needs to judge the drive: state changes, EMCYs and the hardest stop deceleration."""
 
@@ -70,8 +96,15 @@ class DriveTrace:
 class SimulatedDrive:
     """One CiA 402 drive behind a LocalNode. Call its methods with the rack's lock held."""
 
-    def __init__(self, node: canopen.LocalNode, servo: ServoModel, start_position_m: float) -> None:
+    def __init__(
+        self,
+        node: canopen.LocalNode,
+        servo: ServoModel,
+        start_position_m: float,
+        lock: threading.RLock | None = None,
+    ) -> None:
         self.node = node
+        self.lock = lock if lock is not None else threading.RLock()  # the rack's: SDO and PDO arrive on the bus thread
         self.servo = servo
         self.trace = DriveTrace()
         self.connected = True
@@ -102,8 +135,13 @@ class SimulatedDrive:
         self.last_step_s = time.monotonic()
         self.last_sync_s = 0.0
         self._rpdo_codecs: list[tuple[canopen.pdo.PdoMap, PdoCodec]] = []
+        self._event_rpdo_codecs: dict[int, PdoCodec] = {}
         self._tpdo_codecs: list[PdoCodec] = []
+        self._event_tpdos: list[EventTpdo] = []
+        self._synchronous = False  # whether SYNC is the time base (a synchronous RPDO is mapped)
         self._parameters: dict[tuple[int, int], int] = {}
+        implemented = sum(mode.supported_modes_bit for mode in IMPLEMENTED_MODES)
+        self.override(cia402.SUPPORTED_DRIVE_MODES, 0, self.parameter(cia402.SUPPORTED_DRIVE_MODES) & implemented)
         node.add_write_callback(self._on_sdo_write)
         node.add_read_callback(self._on_sdo_read)
         self._take(cia402.internal_transition(DriveState.NOT_READY_TO_SWITCH_ON, DriveState.SWITCH_ON_DISABLED))
@@ -134,9 +172,20 @@ class SimulatedDrive:
             raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
         if index in (cia402.QUICK_STOP_OPTION_CODE, cia402.FAULT_REACTION_OPTION_CODE) and value not in (1, 2, 5, 6):
             raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
+        if index == cia402.MODES_OF_OPERATION and not self.implements_mode(value):
+            raise SdoAbortedError(SDO_ABORT_VALUE_RANGE)
         self._parameters[(index, subindex)] = value
         if index == cia402.CONSUMER_HEARTBEAT_TIME and subindex == 1:
             self._configure_heartbeat_consumer(value)
+        if index in (cia402.CONTROLWORD, cia402.MODES_OF_OPERATION, cia402.TARGET_POSITION):
+            with self.lock:  # acted on at once, as from an event-driven RPDO
+                self._latch({index: value}, synchronous=False)
+                self.send_event_tpdos(time.monotonic())
+
+    def implements_mode(self, mode: int) -> bool:
+        """Whether 0x6060 = `mode` can take effect: a mode this drive implements and 0x6502 reports."""
+        supported = self.parameter(cia402.SUPPORTED_DRIVE_MODES)
+        return any(mode == m and supported & m.supported_modes_bit for m in IMPLEMENTED_MODES)
 
     def _on_sdo_read(self, index: int, subindex: int, od: canopen.objectdictionary.ODVariable) -> int | None:
         live = self._live_values()
@@ -212,6 +261,7 @@ class SimulatedDrive:
         self._master_heartbeat_id = None
         self._heartbeat_lost = False
         self._rpdo_codecs, self._tpdo_codecs = [], []
+        self._event_rpdo_codecs, self._event_tpdos, self._synchronous = {}, [], False
         if application:
             self.homed = self._homing_attained = False
             self.home_reference_counts = self.true_position_counts
@@ -220,21 +270,55 @@ class SimulatedDrive:
             self._take(cia402.internal_transition(DriveState.NOT_READY_TO_SWITCH_ON, DriveState.SWITCH_ON_DISABLED))
 
     def _load_pdo_mapping(self) -> None:
-        """Read the mapping the master wrote (0x1400/0x1600, 0x1800/0x1A00) and build codecs from it."""
+        """Read the mapping the master wrote (0x1400/0x1600, 0x1800/0x1A00) and build codecs from it.
+
+        Synchronous RPDOs are latched on SYNC; event-driven ones act on reception. Synchronous TPDOs
+        (types 1–240) answer every SYNC; event-driven ones (254/255) are sent on change, starting now."""
         od = self.node.object_dictionary
         self.node.rpdo.read()
         self.node.tpdo.read()
         assert self.node.rpdo.map is not None and self.node.tpdo.map is not None
-        self._rpdo_codecs = [
-            (pdo, PdoCodec.from_mapping(pdo.cob_id, [(v.index, v.length) for v in pdo.map], od))
-            for pdo in self.node.rpdo.map.values()
-            if pdo.enabled and pdo.map
+
+        def codec(pdo: canopen.pdo.PdoMap) -> PdoCodec:
+            assert pdo.cob_id is not None  # read() set it
+            return PdoCodec.from_mapping(pdo.cob_id, [(v.index, v.length) for v in pdo.map], od)
+
+        rpdos = [pdo for pdo in self.node.rpdo.map.values() if pdo.enabled and pdo.map]
+        self._rpdo_codecs = [(pdo, codec(pdo)) for pdo in rpdos if pdo.trans_type in SYNCHRONOUS_TRANSMISSION]
+        self._event_rpdo_codecs = {
+            pdo.cob_id: codec(pdo) for pdo in rpdos if pdo.trans_type in EVENT_DRIVEN_TRANSMISSION
+        }
+        for pdo in rpdos:
+            pdo.callbacks[:] = [self._on_event_rpdo] if pdo.cob_id in self._event_rpdo_codecs else []
+        self._synchronous = bool(self._rpdo_codecs)
+        tpdos = [pdo for pdo in self.node.tpdo.map.values() if pdo.enabled and pdo.map]
+        self._tpdo_codecs = [codec(pdo) for pdo in tpdos if pdo.trans_type is not None and 1 <= pdo.trans_type <= 240]
+        self._event_tpdos = [
+            EventTpdo(codec(pdo), (pdo.inhibit_time or 0) * 1e-4, (pdo.event_timer or 0) * 1e-3)
+            for pdo in tpdos
+            if pdo.trans_type in EVENT_DRIVEN_TRANSMISSION
         ]
-        self._tpdo_codecs = [
-            PdoCodec.from_mapping(pdo.cob_id, [(v.index, v.length) for v in pdo.map], od)
-            for pdo in self.node.tpdo.map.values()
-            if pdo.enabled and pdo.map and pdo.trans_type is not None and 1 <= pdo.trans_type <= 240
-        ]
+        self.send_event_tpdos(time.monotonic())
+
+    def _on_event_rpdo(self, pdo: canopen.pdo.PdoMap) -> None:
+        """An event-driven RPDO arrived (bus thread): act on it now, no SYNC needed."""
+        codec = self._event_rpdo_codecs.get(pdo.cob_id or 0)
+        with self.lock:
+            if codec is None or not self.connected or self.node.nmt.state != NMT_OPERATIONAL:
+                return
+            self._latch(dict(zip(codec.indices, codec.unpack(pdo.data), strict=True)), synchronous=False)
+            self.send_event_tpdos(time.monotonic())
+
+    def send_event_tpdos(self, now_s: float) -> None:
+        """Every event-driven TPDO whose frame changed or whose event timer expired (inhibit time kept)."""
+        if not self._event_tpdos or not self.connected or self.node.nmt.state != NMT_OPERATIONAL:
+            return
+        live = self._live_values()
+        for tpdo in self._event_tpdos:
+            frame = tpdo.codec.pack([live[index] for index in tpdo.codec.indices])
+            if tpdo.due(frame, now_s):
+                self.node.network.send_message(tpdo.codec.cob_id, frame)
+                tpdo.last_frame, tpdo.last_sent_s = frame, now_s
 
     # --- heartbeat consumer -------------------------------------------------------------------------
 
@@ -261,7 +345,7 @@ class SimulatedDrive:
         is the SYNC, as on a real drive.
         """
         ramping = self.state in (DriveState.QUICK_STOP_ACTIVE, DriveState.FAULT_REACTION_ACTIVE)
-        return ramping or self._heartbeat_lost or not self.connected
+        return ramping or self._heartbeat_lost or not self.connected or not self._synchronous
 
     def check_heartbeat(self, now_s: float) -> None:
         seen = self._master_heartbeat_seen_s
@@ -316,12 +400,16 @@ class SimulatedDrive:
         self.last_step_s = now_s
         for pdo, codec in self._rpdo_codecs:
             if pdo.is_received:
-                self._latch(dict(zip(codec.indices, codec.unpack(pdo.data), strict=True)))
+                self._latch(dict(zip(codec.indices, codec.unpack(pdo.data), strict=True)), synchronous=True)
         live = self._live_values()
         for codec in self._tpdo_codecs:
             self.node.network.send_message(codec.cob_id, codec.pack([live[index] for index in codec.indices]))
+        self.send_event_tpdos(now_s)
 
-    def _latch(self, values: Mapping[int, int]) -> None:
+    def _latch(self, values: Mapping[int, int], *, synchronous: bool) -> None:
+        """Act on received command objects. A synchronous CSP target is the next interpolation point, one
+        cycle (0x1006) on, with velocity and acceleration feed-forward; an asynchronous one (SDO or an
+        event-driven RPDO) is a new set-point the position loop goes to."""
         period_s = self.parameter(cia402.COMMUNICATION_CYCLE_PERIOD) / 1e6
         if cia402.MODES_OF_OPERATION in values:
             self._set_mode(values[cia402.MODES_OF_OPERATION])
@@ -330,10 +418,14 @@ class SimulatedDrive:
             target = values[cia402.TARGET_POSITION] + self.home_reference_counts
             previous = self._target_counts
             self._target_counts = target
-            self._reference_counts = previous
-            velocity = (target - previous) / period_s if period_s > 0 else 0.0
-            self._feedforward_acceleration = (velocity - self._feedforward_velocity) / period_s if period_s else 0.0
-            self._feedforward_velocity = velocity
+            if synchronous and period_s > 0:
+                self._reference_counts = previous
+                velocity = (target - previous) / period_s
+                self._feedforward_acceleration = (velocity - self._feedforward_velocity) / period_s
+                self._feedforward_velocity = velocity
+            else:
+                self._reference_counts = target
+                self._feedforward_velocity = self._feedforward_acceleration = 0.0
         if cia402.CONTROLWORD in values:
             self._apply_controlword(values[cia402.CONTROLWORD])
 
@@ -341,8 +433,7 @@ class SimulatedDrive:
         if mode == self._mode:
             return
         self._mode = mode
-        supported = self.parameter(cia402.SUPPORTED_DRIVE_MODES)
-        if mode in set(cia402.OperationMode) and supported & cia402.OperationMode(mode).supported_modes_bit:
+        if self.implements_mode(mode):  # otherwise 0x6061 keeps showing the mode still in effect
             self._mode_display = mode
             self._homing_phase = 0
 
@@ -565,7 +656,7 @@ class SimulatedDriveRack:
             eds = self._eds_overrides.get(node_id, drive_type.eds_path)
             node = network.create_node(node_id, str(eds))
             servo = ServoModel(drive_type.counts_per_m, drive_type.rated_force_n, moving_mass_kg=self._moving_mass_kg)
-            self.drives[node_id] = SimulatedDrive(node, servo, self._start_positions_m[node_id])
+            self.drives[node_id] = SimulatedDrive(node, servo, self._start_positions_m[node_id], self.lock)
         network.subscribe(SYNC_COB_ID, self._on_sync)
         network.subscribe(0, self._on_nmt)
         for producer_id in range(1, 128):
@@ -621,6 +712,7 @@ class SimulatedDriveRack:
                     if sync_missing and drive.runs_on_own_clock():
                         drive.advance(now - drive.last_step_s, synchronous=False)
                         drive.last_step_s = now
+                    drive.send_event_tpdos(now)
 
     def inject_bus_off(self) -> None:
         """What a CAN controller reports when it goes bus-off: an error frame of class BUSOFF."""
