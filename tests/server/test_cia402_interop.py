@@ -9,16 +9,20 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
 
 import canopen
+import numpy as np
 import pytest
 from canopen.profiles.p402 import BaseNode402
 
-from server.hal.base import DriveState
+from core.robot import TwinRobot
+from server.hal.base import DriveState, HalCommand, HalReading, HalState
+from server.hal.canopen.master import CanopenHal
 from server.hal.canopen.simulated_drive import SimulatedDriveRack
 from server.hal.canopen.units import DEFAULT_CONFIGURATION_PATH, DriveConfiguration, load_drive_configuration
 
@@ -163,3 +167,249 @@ def test_base_node_402_enables_and_moves_the_simulated_drive_by_event_driven_pdo
     assert simulated_drive.drive(NODE_ID).state == DriveState.OPERATION_ENABLED
     node.state = "SWITCH ON DISABLED"
     assert node.state == "SWITCH ON DISABLED"
+
+
+# --- 2. the product's master on drives written here from the CiA 402 standard --------------------------
+
+# Statusword state codes, CiA 402 §6.2.2 table 30 (value with bits 0–3, 5, 6).
+STATUSWORD = {
+    "SWITCH ON DISABLED": 0x0040,
+    "READY TO SWITCH ON": 0x0021,
+    "SWITCHED ON": 0x0023,
+    "OPERATION ENABLED": 0x0027,
+    "QUICK STOP ACTIVE": 0x0007,
+    "FAULT REACTION ACTIVE": 0x000F,
+    "FAULT": 0x0008,
+}
+HOMING_MODE, CSP_MODE = 6, 8
+
+
+def device_command(controlword: int) -> str | None:
+    """Decode a controlword's device-control command, CiA 402 §6.2.1 table 28 (fault reset aside)."""
+    if controlword & 0x0082 == 0x0000:
+        return "disable voltage"
+    if controlword & 0x0086 == 0x0002:
+        return "quick stop"
+    if controlword & 0x0087 == 0x0006:
+        return "shutdown"
+    if controlword & 0x008F == 0x0007:
+        return "switch on"  # also "disable operation"
+    if controlword & 0x008F == 0x000F:
+        return "enable operation"  # also "switch on + enable operation"
+    return None
+
+
+# (state, command) → next state, CiA 402 §6.2 figure 31; "switch on + enable operation" takes 3 then 4.
+NEXT_STATE = {
+    ("SWITCH ON DISABLED", "shutdown"): "READY TO SWITCH ON",  # 2
+    ("READY TO SWITCH ON", "switch on"): "SWITCHED ON",  # 3
+    ("READY TO SWITCH ON", "enable operation"): "OPERATION ENABLED",  # 3 + 4
+    ("READY TO SWITCH ON", "disable voltage"): "SWITCH ON DISABLED",  # 7
+    ("READY TO SWITCH ON", "quick stop"): "SWITCH ON DISABLED",  # 7
+    ("SWITCHED ON", "enable operation"): "OPERATION ENABLED",  # 4
+    ("SWITCHED ON", "shutdown"): "READY TO SWITCH ON",  # 6
+    ("SWITCHED ON", "disable voltage"): "SWITCH ON DISABLED",  # 10
+    ("SWITCHED ON", "quick stop"): "SWITCH ON DISABLED",  # 10
+    ("OPERATION ENABLED", "switch on"): "SWITCHED ON",  # 5
+    ("OPERATION ENABLED", "shutdown"): "READY TO SWITCH ON",  # 8
+    ("OPERATION ENABLED", "disable voltage"): "SWITCH ON DISABLED",  # 9
+    ("OPERATION ENABLED", "quick stop"): "QUICK STOP ACTIVE",  # 11
+    ("QUICK STOP ACTIVE", "disable voltage"): "SWITCH ON DISABLED",  # 12
+}
+
+
+class StandardDrive:
+    """An ideal CiA 402 position drive on a LocalNode: CSP (the axis is where the last target put it), homing
+    on the current position (methods 35/37), quick stop per 0x605A, faults with EMCY and fault reset."""
+
+    def __init__(self, network: canopen.Network, node_id: int) -> None:
+        self.node = canopen.LocalNode(node_id, str(EDS))
+        network.add_node(self.node)
+        self.node.add_read_callback(self._on_read)
+        self.state = "SWITCH ON DISABLED"
+        self.states_seen = {self.state}
+        self.controlword = 0
+        self.mode_display = 0
+        self.position = 0  # encoder counts; the drive powers up wherever it stands
+        self.home_reference = 0
+        self.velocity = 0
+        self.homed = False
+        self.error_code = 0
+        self.pending_fault: int | None = None
+
+    def parameter(self, index: int) -> int:
+        return int(self.node.sdo[index].raw)
+
+    def _on_read(self, index: int, subindex: int, od: object) -> int | None:
+        live = {0x6041: self.statusword(), 0x6064: self.position - self.home_reference, 0x6061: self.mode_display}
+        return live.get(index)
+
+    def statusword(self) -> int:
+        word = STATUSWORD[self.state] | 0x0200  # remote
+        if self.mode_display == HOMING_MODE and self.homed:
+            word |= 0x1000 | 0x0400  # homing attained, target reached
+        return word
+
+    def boot(self) -> None:
+        self.node.nmt.send_command(0x81)  # INITIALISING: the boot-up message
+        self.node.nmt.send_command(0x80)  # PRE-OPERATIONAL, heartbeat from 0x1017
+
+    def start(self) -> None:
+        """NMT start: take the PDO mapping the master wrote."""
+        self.node.rpdo.read()
+        self.node.tpdo.read()
+
+    def on_sync(self, period_s: float) -> None:
+        if self.node.nmt.state != "OPERATIONAL":
+            return
+        received = {var.index: var.raw for pdo in self.node.rpdo.map.values() if pdo.enabled for var in pdo.map}
+        if self.pending_fault is not None:
+            self.error_code, self.pending_fault = self.pending_fault, None
+            self.node.emcy.send(self.error_code, 1)
+            self._enter("FAULT REACTION ACTIVE")
+            self.velocity = 0  # an ideal drive is at standstill at once
+            self._enter("FAULT")
+        if 0x6060 in received and received[0x6060] in (HOMING_MODE, CSP_MODE):
+            self.mode_display = int(received[0x6060])
+        if 0x6040 in received:
+            self._controlword(int(received[0x6040]))
+        previous = self.position
+        if self.state == "OPERATION ENABLED" and self.mode_display == CSP_MODE and 0x607A in received:
+            self.position = int(received[0x607A]) + self.home_reference
+        self.velocity = round((self.position - previous) / period_s) if period_s else 0
+        live = {
+            0x6041: self.statusword(),
+            0x6064: self.position - self.home_reference,
+            0x6077: 0,
+            0x606C: self.velocity,
+            0x603F: self.error_code,
+            0x6061: self.mode_display,
+        }
+        for pdo in self.node.tpdo.map.values():
+            if pdo.enabled and pdo.map:
+                for var in pdo.map:
+                    var.raw = live[var.index]
+                pdo.transmit()
+
+    def _controlword(self, word: int) -> None:
+        previous, self.controlword = self.controlword, word
+        if self.state == "FAULT":
+            if word & 0x0080 and not previous & 0x0080:  # fault reset on the rising edge (15)
+                self.error_code = 0
+                self._enter("SWITCH ON DISABLED")
+            return
+        command = device_command(word)
+        if self.state == "QUICK STOP ACTIVE" and command == "enable operation":
+            if self.parameter(0x605A) in (5, 6, 7, 8):  # 16 only under a "stay" option
+                self._enter("OPERATION ENABLED")
+            return
+        next_state = NEXT_STATE.get((self.state, command or ""))
+        if next_state == "QUICK STOP ACTIVE" and self.parameter(0x605A) in (0, 1, 2, 3, 4):
+            next_state = "SWITCH ON DISABLED"  # stopped at once, then disabled (12)
+        if next_state is not None:
+            self._enter(next_state)
+        homing = self.state == "OPERATION ENABLED" and self.mode_display == HOMING_MODE
+        if homing and word & 0x0010 and not previous & 0x0010 and self.parameter(0x6098) in (35, 37):
+            self.home_reference = self.position - self.parameter(0x607C)
+            self.homed = True
+
+    def _enter(self, state: str) -> None:
+        self.state = state
+        self.states_seen.add(state)
+
+
+class StandardDriveRack:
+    """Standard drives for `node_ids` on one connection, answering NMT and SYNC."""
+
+    def __init__(self, channel: str, node_ids: list[int]) -> None:
+        self.network = canopen.Network()
+        self.network.NOTIFIER_CYCLE = 0.05
+        self.drives = {node_id: StandardDrive(self.network, node_id) for node_id in node_ids}
+        self.network.subscribe(0x80, self._on_sync)
+        self.network.subscribe(0, self._on_nmt)
+        self.network.connect(interface="virtual", channel=channel, receive_own_messages=False)
+        self.lock = threading.Lock()
+        for drive in self.drives.values():
+            drive.boot()
+
+    def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        command, node_id = data[0], data[1]
+        with self.lock:
+            for drive in self.drives.values():
+                if node_id in (0, drive.node.id):
+                    if command in (0x81, 0x82):
+                        drive.boot()
+                    elif command == 0x01:
+                        drive.start()
+
+    def _on_sync(self, can_id: int, data: bytearray, timestamp: float) -> None:
+        with self.lock:
+            for drive in self.drives.values():
+                drive.on_sync(drive.parameter(0x1006) / 1e6)
+
+    def close(self) -> None:
+        for drive in self.drives.values():
+            drive.node.nmt.stop_heartbeat()
+        self.network.disconnect()
+
+
+def test_product_master_runs_drives_written_from_the_standard(
+    twin: TwinRobot, channel: str, configuration: DriveConfiguration
+) -> None:
+    configuration = dataclasses.replace(configuration.with_homing_method(35), heartbeat_timeout_ms=500)
+    rack = StandardDriveRack(channel, configuration.node_ids)
+    hal = CanopenHal(twin, 0.002, interface="virtual", channel=channel, configuration=configuration)
+    drives = list(rack.drives.values())
+    reading = HalReading()
+
+    def tick(command: HalCommand | None = None) -> None:
+        if command is not None:
+            hal.write(command)
+        hal.wait_for_feedback(1.0)
+        hal.read(reading)
+
+    try:
+        hal.configure()  # commissioning: identity, parameters and PDO mapping by SDO, NMT start
+        assert all(d.node.nmt.state == "OPERATIONAL" and d.parameter(0x6098) == 35 for d in drives)
+        assert all(d.parameter(0x605A) == 6 and d.node.tpdo.map[1].enabled for d in drives)
+        hal.home()
+        tick()
+        assert reading.homed.all() and all(d.homed for d in drives)
+        hal.activate()
+        tick()
+        assert all(d.state == "OPERATION ENABLED" and d.mode_display == CSP_MODE for d in drives)
+        command = HalCommand()
+        command.positions_m[:] = reading.positions_m
+        for _ in range(50):  # outwards at 0.1 m/s: the ideal drives follow the set-points exactly
+            command.positions_m += hal.scaling.direction * 0.1 * hal.control_period_s
+            tick(command)
+        tick(command)
+        np.testing.assert_allclose(reading.positions_m, command.positions_m, atol=1e-6)
+
+        drives[2].pending_fault = 0x2310  # over-current on node 3
+        for _ in range(20):
+            if hal.state is not HalState.ACTIVE:
+                break
+            tick(command)
+        assert hal.state is HalState.FAULT
+        assert "node 3" in (hal.last_fault or "") and "0x2310" in (hal.last_fault or "")
+        tick()  # the quick-stop cycle's answers
+        assert drives[2].state == "FAULT"
+        assert all(d.state == "QUICK STOP ACTIVE" for i, d in enumerate(drives) if i != 2)
+        hal.reset_fault()
+        assert hal.state is HalState.CONFIGURED
+        assert all(d.state == "SWITCH ON DISABLED" and d.error_code == 0 for d in drives)
+
+        hal.activate()
+        tick()
+        hal.emergency_stop()
+        assert hal.state is HalState.ESTOP
+        assert all(d.state == "SWITCH ON DISABLED" and "QUICK STOP ACTIVE" in d.states_seen for d in drives)
+        hal.reset_estop()
+        for _ in range(20):
+            tick()
+        assert hal.state is HalState.CONFIGURED
+        assert all(d.state == "SWITCH ON DISABLED" for d in drives)  # a reset never re-enables
+    finally:
+        hal.shutdown()
+        rack.close()
