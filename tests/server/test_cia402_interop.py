@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import canopen
 import numpy as np
@@ -25,33 +24,13 @@ from server.hal.base import DriveState, HalCommand, HalReading, HalState
 from server.hal.canopen.master import CanopenHal
 from server.hal.canopen.simulated_drive import SimulatedDriveRack
 from server.hal.canopen.units import DEFAULT_CONFIGURATION_PATH, DriveConfiguration, load_drive_configuration
+from tests.server.canopen_fixtures import no_leaked_threads  # noqa: F401 (autouse fixture)
+from tests.server.test_hal_canopen import wait_until
 
 EDS = DEFAULT_CONFIGURATION_PATH.parent / "eds" / "ssp_linear_axis.eds"
 NODE_ID = 1
 STEP_COUNTS = 13_107  # 2 mm at 6553.6 counts/mm: well inside the drive's default following-error window (5 mm)
 EVENT_TIMER_MS = 20  # TPDOs on change, and at least this often (BaseNode402 waits 0.2 s for a statusword)
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.005)
-    return predicate()
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_threads() -> Iterator[None]:
-    before = set(threading.enumerate())
-    yield
-    deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
-        leaked = [t for t in set(threading.enumerate()) - before if t.is_alive()]
-        if not leaked:
-            return
-        time.sleep(0.02)
-    pytest.fail(f"threads left running: {leaked}")
 
 
 @pytest.fixture

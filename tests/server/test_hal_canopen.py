@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -33,24 +32,16 @@ from server.hal.canopen.units import (
     drive_configuration_from_dict,
     load_drive_configuration,
 )
+from tests.server.canopen_fixtures import (  # noqa: F401 (no_leaked_threads: an autouse fixture)
+    brisk_configuration,
+    no_leaked_threads,
+    wait_until,
+)
 
 PERIOD_S = 0.002
 HEARTBEAT_TIMEOUT_MS = 500
 EDS_DIRECTORY = DEFAULT_CONFIGURATION_PATH.parent / "eds"
 VCAN = Path("/sys/class/net/vcan0")
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_threads() -> Iterator[None]:
-    before = set(threading.enumerate())
-    yield
-    deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
-        leaked = [t for t in set(threading.enumerate()) - before if t.is_alive()]
-        if not leaked:
-            return
-        time.sleep(0.02)
-    pytest.fail(f"threads left running: {leaked}")
 
 
 @pytest.fixture
@@ -60,17 +51,7 @@ def channel() -> str:
 
 @pytest.fixture(scope="module")
 def configuration() -> DriveConfiguration:
-    """The shipped configuration with brisk homing, so tests spend little wall time homing, and a
-    heartbeat timeout that survives a test machine stalling the whole process for a few hundred ms."""
-    shipped = load_drive_configuration()
-    fast = dataclasses.replace(
-        shipped.axes[0].drive_type,
-        homing_switch_speed_mm_s=250.0,
-        homing_zero_speed_mm_s=20.0,
-        homing_acceleration_mm_s2=5000.0,
-    )
-    axes = tuple(dataclasses.replace(axis, drive_type=fast) for axis in shipped.axes)
-    return dataclasses.replace(shipped, axes=axes, heartbeat_timeout_ms=HEARTBEAT_TIMEOUT_MS)
+    return brisk_configuration(HEARTBEAT_TIMEOUT_MS)
 
 
 @pytest.fixture
@@ -138,15 +119,6 @@ def spin(hal: CanopenHal, seconds: float, wait_s: float = 1.0) -> HalReading:
     for _ in range(round(seconds / hal.control_period_s)):
         cycle(hal, reading, wait_s=wait_s)
     return reading
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return predicate()
 
 
 def event_kinds(events: list[dict]) -> list[str]:

@@ -27,7 +27,7 @@ from server.hal.base import (
     HalState,
     HardwareInterface,
 )
-from server.hal.canopen.units import load_drive_configuration
+from tests.server.canopen_fixtures import brisk_configuration, no_leaked_threads  # noqa: F401 (autouse fixture)
 
 BACKENDS = ("kinematic", "sim", "canopen")
 SETTLE_TICKS = 2000  # generous: a 1.5 m/s axis quick-stops within a few hundred ticks on every backend
@@ -45,20 +45,8 @@ def make_backend(name: str, twin: TwinRobot) -> HardwareInterface:
         return SimHal(twin, 0.001)
     from server.hal.canopen.master import create_canopen_hal
 
-    shipped = load_drive_configuration()
-    brisk = dataclasses.replace(
-        shipped.axes[0].drive_type,
-        homing_switch_speed_mm_s=250.0,
-        homing_zero_speed_mm_s=20.0,
-        homing_acceleration_mm_s2=5000.0,
-    )
-    configuration = dataclasses.replace(
-        shipped,
-        axes=tuple(dataclasses.replace(axis, drive_type=brisk) for axis in shipped.axes),
-        heartbeat_timeout_ms=500,  # survives a test machine stalling the process for a moment
-    )
     channel = f"ssp-conformance-{uuid.uuid4().hex[:10]}"
-    return create_canopen_hal(twin, 0.002, "virtual", channel, configuration=configuration, simulate=AXIS_COUNT)
+    return create_canopen_hal(twin, 0.002, "virtual", channel, configuration=brisk_configuration(), simulate=AXIS_COUNT)
 
 
 @pytest.fixture(params=BACKENDS)
@@ -103,6 +91,16 @@ def inward_command(reading: HalReading, hal: HardwareInterface) -> HalCommand:
     return command
 
 
+def enabled(hal: HardwareInterface) -> tuple[HalReading, HalCommand]:
+    """Configure, home and activate; the first reading and a command holding the axes where they are."""
+    reading = HalReading()
+    hal.configure()
+    hal.home()
+    hal.activate()
+    tick(hal, reading)
+    return reading, inward_command(reading, hal)
+
+
 def move_towards_mid_stroke(hal: HardwareInterface, reading: HalReading, ticks: int) -> np.ndarray:
     """Ramp every axis towards mid-stroke at 0.05 m/s; returns the commanded displacement (m)."""
     tick(hal, reading)
@@ -141,12 +139,7 @@ def test_configure_activate_read_write(hal: HardwareInterface) -> None:
 
 
 def test_rejected_command_faults_with_a_quick_stop_and_reset_leaves_power_off(hal: HardwareInterface) -> None:
-    reading = HalReading()
-    hal.configure()
-    hal.home()
-    hal.activate()
-    tick(hal, reading)
-    command = inward_command(reading, hal)
+    reading, command = enabled(hal)
     command.positions_m[3] = np.nan
     with pytest.raises(CommandRejectedError, match="positions_m"):
         hal.write(command)
@@ -162,12 +155,7 @@ def test_rejected_command_faults_with_a_quick_stop_and_reset_leaves_power_off(ha
 
 
 def test_emergency_stop_latches_removes_power_and_reset_never_moves(hal: HardwareInterface) -> None:
-    reading = HalReading()
-    hal.configure()
-    hal.home()
-    hal.activate()
-    tick(hal, reading)
-    command = inward_command(reading, hal)
+    reading, command = enabled(hal)
     hal.emergency_stop()
     assert hal.state is HalState.ESTOP
     assert_drives(hal, reading, DriveState.SWITCH_ON_DISABLED)
