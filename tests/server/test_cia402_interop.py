@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 import uuid
 from collections.abc import Iterator
 
@@ -392,3 +393,26 @@ def test_product_master_runs_drives_written_from_the_standard(
     finally:
         hal.shutdown()
         rack.close()
+
+
+def test_quick_stop_of_the_simulated_drive_follows_its_option_code(
+    base_node: BaseNode402, simulated_drive: SimulatedDriveRack
+) -> None:
+    """0x605A = 2: after the ramp the drive disables itself (12). 0x605A = 6: it stays in QUICK STOP ACTIVE,
+    holding, and only then does "enable operation" take it back (16)."""
+    node = base_node
+    node.nmt.state = "OPERATIONAL"
+    node.sdo[0x605A].raw = 2
+    node.state = "OPERATION ENABLED"
+    node.controlword = 0x0002  # quick stop
+    assert wait_until(lambda: node.state == "SWITCH ON DISABLED", 3.0), node.state
+    reasons = [reason for *_, reason in simulated_drive.drive(NODE_ID).trace.transitions]
+    assert reasons[-2:] == ["quick stop", "quick stop done"]
+    node.sdo[0x605A].raw = 6
+    node.state = "OPERATION ENABLED"
+    node.controlword = 0x0002
+    assert wait_until(lambda: node.state == "QUICK STOP ACTIVE", 3.0), node.state
+    time.sleep(0.1)  # well past the ramp of a drive at standstill
+    assert node.state == "QUICK STOP ACTIVE"
+    node.controlword = 0x000F  # enable operation: transition 16
+    assert wait_until(lambda: node.state == "OPERATION ENABLED", 3.0), node.state

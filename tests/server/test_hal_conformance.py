@@ -9,6 +9,8 @@ stop) → reset → activate → emergency stop (latched; drives end SWITCH ON D
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 import uuid
 from collections.abc import Callable, Iterator
 
@@ -207,3 +209,15 @@ def test_optional_capabilities_are_declared_not_probed(hal: HardwareInterface) -
         tick(hal, reading)
     body_weight_n = 70.0 * GRAVITY_M_S2
     assert 0.5 * body_weight_n < reading.plate_force_z_n.sum() < 1.5 * body_weight_n
+
+
+def test_hal_imports_neither_realtime_nor_anything_that_imports_it_back() -> None:
+    """The layering the package move gives: hal → core only; the MuJoCo twin lives inside hal."""
+    probe = (
+        "import sys\n"
+        "import server.hal.base, server.hal.backends, server.hal.kinematic, server.hal.canopen.master\n"
+        "import server.hal.sim.backend\n"
+        "print(sorted(m for m in sys.modules if m.startswith('server.') and not m.startswith('server.hal')))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "[]", result.stdout
