@@ -147,31 +147,41 @@ def test_seqlock_refuses_an_unsupported_cpu_naming_it_and_creates_nothing(
     assert created == []  # refused before any shared memory exists
 
 
-def test_memory_barrier_is_a_hardware_fence() -> None:
-    shm.memory_barrier()
-    fresh = numba.njit(cache=False)(shm.memory_barrier.py_func)  # the cached one keeps no IR to inspect
-    fresh()
+def _fresh_llvm(dispatcher: object, *args: object) -> str:
+    """LLVM IR of a fresh compile (a function loaded from numba's cache keeps no IR to inspect)."""
+    fresh = numba.njit(cache=False)(dispatcher.py_func)  # type: ignore[attr-defined]
+    fresh(*args)
     (signature,) = fresh.signatures
-    assert "fence seq_cst" in fresh.inspect_llvm(signature)
+    return fresh.inspect_llvm(signature)
 
 
-def test_seqlock_fences_the_record_copy_from_both_sequence_updates(monkeypatch: pytest.MonkeyPatch) -> None:
-    """At each barrier of a write: the sequence is already odd, and the record is old at the first, new
-    at the second; a reader fences between its sequence reads and its copy the same way."""
+def test_memory_barrier_is_a_hardware_fence() -> None:
+    assert "fence seq_cst" in _fresh_llvm(shm.memory_barrier)
+
+
+def test_seqlock_write_and_read_each_fence_the_copy_from_both_sequence_accesses() -> None:
+    """Two full barriers in each compiled half of the seqlock, with the copy between them."""
+    sequence, record, source = np.zeros(1, np.uint64), np.zeros(16, np.uint8), np.arange(16, dtype=np.uint8)
+    for function in (shm._seqlock_write, shm._seqlock_try_read):
+        ir = _fresh_llvm(function, sequence, record, source)
+        assert ir.count("fence seq_cst") == 2, function
+        first, second = ir.index("fence seq_cst"), ir.rindex("fence seq_cst")
+        between = ir[first:second]
+        assert "memcpy" in between or "memmove" in between or "store i8" in between  # the record copy
+
+
+def test_seqlock_publishes_later_changes_of_the_same_record_and_refuses_a_foreign_one() -> None:
     seqlock = Seqlock(TELEMETRY_DTYPE)
-    old, new = np.zeros(1, TELEMETRY_DTYPE), np.zeros(1, TELEMETRY_DTYPE)
-    _stamp(old, 1)
-    _stamp(new, 2)
+    record = np.zeros(1, TELEMETRY_DTYPE)
     try:
-        seqlock.write(old)
-        seen: list[tuple[int, int]] = []
-        monkeypatch.setattr(
-            shm, "memory_barrier", lambda: seen.append((seqlock.sequence, int(seqlock._record["tick"][0])))
-        )
-        seqlock.write(new)
-        assert seen == [(3, 1), (3, 2)]
-        seen.clear()
-        assert seqlock.read()["tick"][0] == 2
-        assert seen == [(4, 2), (4, 2)]
+        for value in (1, 2):
+            _stamp(record, value)
+            seqlock.write(record)  # the same array again: its new contents are published
+            snapshot = seqlock.read()
+            assert _consistent(snapshot) and snapshot["tick"][0] == value
+        assert seqlock.sequence == 4
+        with pytest.raises(ValueError, match="expected a contiguous"):
+            seqlock.write(np.zeros(2, TELEMETRY_DTYPE))
+        assert seqlock.sequence == 4  # nothing half-written
     finally:
         seqlock.close()
