@@ -89,6 +89,9 @@ REQUIRED_OBJECTS = (
 # transitions are allowed only inside the lifecycle call that asks for them.
 FAULT_RESET, ENABLE_OPERATION, QUICK_STOP_ENABLE = 15, 4, 16
 CYCLIC_FORBIDDEN = frozenset({FAULT_RESET, ENABLE_OPERATION, QUICK_STOP_ENABLE})
+# 0x605A the master writes into every drive, and plans its controlword paths under: a quick stop ramps
+# down and holds, powered, in QUICK STOP ACTIVE until the master disables the drive.
+QUICK_STOP_OPTION = cia402.QuickStopOption.QUICK_STOP_RAMP_AND_STAY
 QUIET_EVENTS = frozenset({"homed", "fault_reset", "bus_recovered"})
 HOLD_CONTROLWORDS = np.array([cia402.HOLD_CONTROLWORD[DriveState(s)] for s in range(len(DriveState))], dtype=np.int64)
 
@@ -380,7 +383,7 @@ class CanopenHal(HardwareInterface):
             (cia402.COMMUNICATION_CYCLE_PERIOD, 0, round(self.control_period_s * 1e6), "control_period_s"),
             (cia402.INTERPOLATION_TIME_PERIOD, 1, period_value, "control_period_s"),
             (cia402.INTERPOLATION_TIME_PERIOD, 2, period_index, "control_period_s"),
-            (cia402.QUICK_STOP_OPTION_CODE, 0, cia402.QuickStopOption.QUICK_STOP_RAMP_AND_STAY, "quick_stop_option"),
+            (cia402.QUICK_STOP_OPTION_CODE, 0, QUICK_STOP_OPTION, "quick_stop_option"),
             (
                 cia402.FAULT_REACTION_OPTION_CODE,
                 0,
@@ -547,11 +550,11 @@ class CanopenHal(HardwareInterface):
             word = cia402.HOLD_CONTROLWORD[state]
             if state != target:
                 try:
-                    step = cia402.transition_path(state, target)[0]
+                    step = cia402.transition_path(state, target, QUICK_STOP_OPTION)[0]
                 except ValueError:
                     step = None
                 if step is not None and step.number not in self._forbidden_transitions:
-                    word = cia402.next_controlword(state, target, previous)
+                    word = cia402.next_controlword(state, target, previous, QUICK_STOP_OPTION)
             if self._homing_start[axis] and state == DriveState.OPERATION_ENABLED:
                 word |= cia402.CONTROLWORD_HOMING_START
             self.controlwords[axis] = word
