@@ -76,7 +76,6 @@ def _batch(quick: bool) -> dict[str, Any]:
 def _real_time_factor(quick: bool, *, patient: bool) -> dict[str, Any]:
     parameters = PatientParameters.preset("healthy", 75.0, 1.75) if patient else None
     simulator = TwinSimulator(default_twin(), SimulatorOptions(control_period_s=0.001, patient=parameters))
-    simulator.drives.ready()
     simulator.drives.enable(simulator.positions_m)
     ticks = 1_000 if quick else 10_000
     start = time.perf_counter()
