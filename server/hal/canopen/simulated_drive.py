@@ -140,8 +140,10 @@ class SimulatedDrive:
         self._event_tpdos: list[EventTpdo] = []
         self._synchronous = False  # whether SYNC is the time base (a synchronous RPDO is mapped)
         self._parameters: dict[tuple[int, int], int] = {}
-        implemented = sum(mode.supported_modes_bit for mode in IMPLEMENTED_MODES)
-        self.override(cia402.SUPPORTED_DRIVE_MODES, 0, self.parameter(cia402.SUPPORTED_DRIVE_MODES) & implemented)
+        if cia402.SUPPORTED_DRIVE_MODES in node.object_dictionary:  # report only what this drive implements
+            implemented = sum(mode.supported_modes_bit for mode in IMPLEMENTED_MODES)
+            listed = self.parameter(cia402.SUPPORTED_DRIVE_MODES)
+            self.override(cia402.SUPPORTED_DRIVE_MODES, 0, listed & implemented)
         node.add_write_callback(self._on_sdo_write)
         node.add_read_callback(self._on_sdo_read)
         self._take(cia402.internal_transition(DriveState.NOT_READY_TO_SWITCH_ON, DriveState.SWITCH_ON_DISABLED))
@@ -184,7 +186,8 @@ class SimulatedDrive:
 
     def implements_mode(self, mode: int) -> bool:
         """Whether 0x6060 = `mode` can take effect: a mode this drive implements and 0x6502 reports."""
-        supported = self.parameter(cia402.SUPPORTED_DRIVE_MODES)
+        listed = cia402.SUPPORTED_DRIVE_MODES in self.node.object_dictionary
+        supported = self.parameter(cia402.SUPPORTED_DRIVE_MODES) if listed else ~0  # no 0x6502: all it implements
         return any(mode == m and supported & m.supported_modes_bit for m in IMPLEMENTED_MODES)
 
     def _on_sdo_read(self, index: int, subindex: int, od: canopen.objectdictionary.ODVariable) -> int | None:
