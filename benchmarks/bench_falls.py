@@ -13,6 +13,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from benchmarks.timing import per_call_us
 from core.falls import FallDetectorConfig, FallMonitor
 from core.patient import PatientParameters, SimulatedPatient, simulate
 
@@ -26,16 +27,6 @@ def _bare_call(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> float:
     return a[0] + b[0] + c[0]
 
 
-def _per_call_us(function: Any, count: int) -> float:
-    best = float("inf")
-    for _ in range(3):  # best of three: the machine is shared
-        start = time.perf_counter()
-        for _ in range(count):
-            function()
-        best = min(best, (time.perf_counter() - start) / count * 1e6)
-    return best
-
-
 def run(*, quick: bool) -> dict[str, Any]:
     count = 20_000 if quick else 200_000
     params = PatientParameters.preset("healthy", 75.0, 1.78)
@@ -43,12 +34,12 @@ def run(*, quick: bool) -> dict[str, Any]:
     acceleration, tilt, angular_velocity = np.zeros(3), np.zeros(2), np.zeros(3)
     patient.step(acceleration, tilt, angular_velocity)
     _bare_call(acceleration, tilt, angular_velocity)
-    baseline_us = _per_call_us(lambda: _bare_call(acceleration, tilt, angular_velocity), count)
-    step_us = _per_call_us(lambda: patient.step(acceleration, tilt, angular_velocity), count)
+    baseline_us = per_call_us(lambda: _bare_call(acceleration, tilt, angular_velocity), count)
+    step_us = per_call_us(lambda: patient.step(acceleration, tilt, angular_velocity), count)
 
     monitor = FallMonitor(FallDetectorConfig.for_patient(75.0, 1.78), PERIOD_S)
     forces, cops = np.full(2, 0.5 * params.body_weight_n), np.zeros((2, 2))
-    monitor_us = _per_call_us(lambda: monitor.step(0.0, forces, cops, 0.0), count)
+    monitor_us = per_call_us(lambda: monitor.step(0.0, forces, cops, 0.0), count)
 
     samples = 60_000 if quick else 600_000
     zeros3, zeros2 = np.zeros((samples, 3)), np.zeros((samples, 2))

@@ -8,11 +8,11 @@ sequence. Target: the fenced write costs at most 2 µs, 0.2 % of a 1 kHz tick.
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
 
+from benchmarks.timing import per_call_us
 from server.realtime.shm import Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE
 
@@ -49,26 +49,16 @@ def _unfenced_reader(seqlock: Seqlock) -> Any:
     return read
 
 
-def _per_call_us(function: Any, count: int) -> float:
-    best = float("inf")
-    for _ in range(5):  # best of five: the machine is shared
-        start = time.perf_counter()
-        for _ in range(count):
-            function()
-        best = min(best, (time.perf_counter() - start) / count * 1e6)
-    return best
-
-
 def run(*, quick: bool) -> dict[str, Any]:
     count = 20_000 if quick else 200_000
     seqlock = Seqlock(TELEMETRY_DTYPE)
     record = np.zeros(1, TELEMETRY_DTYPE)
     try:
         unfenced = _unfenced_writer(seqlock)
-        baseline_write_us = _per_call_us(lambda: unfenced(record), count)
-        write_us = _per_call_us(lambda: seqlock.write(record), count)
-        read_us = _per_call_us(seqlock.read, count)
-        baseline_read_us = _per_call_us(_unfenced_reader(seqlock), count)
+        baseline_write_us = per_call_us(lambda: unfenced(record), count, repeats=5)
+        write_us = per_call_us(lambda: seqlock.write(record), count, repeats=5)
+        read_us = per_call_us(seqlock.read, count, repeats=5)
+        baseline_read_us = per_call_us(_unfenced_reader(seqlock), count, repeats=5)
     finally:
         seqlock.close()
     return {
