@@ -37,6 +37,7 @@ API_PREFIX = "/api/"
 ORIGIN_CHECK_ONLY = frozenset({"/api/v1/estop", "/api/v1/auth/login"})
 DOCUMENTATION_PATHS = frozenset({"/docs", "/docs/oauth2-redirect", "/redoc"})
 EXCERPT_CHARS = 40
+logger = logging.getLogger(__name__)
 SECRET_FIELDS = frozenset({"password", "secret", "secret_key", "token", "access_token"})
 
 
@@ -103,6 +104,8 @@ class CSRFMiddleware:
         elif scope["type"] == "http" and scope["method"] in UNSAFE_METHODS and scope["path"].startswith(API_PREFIX):
             refusal = self.refusal(scope)
             if refusal is not None:
+                # Logged: a console behind a proxy that rewrites Host shows up here until ALLOWED_ORIGINS is set.
+                logger.warning("refused %s %s: %s", scope["method"], scope["path"], refusal)
                 await JSONResponse({"detail": refusal}, status_code=403)(scope, receive, send)
                 return
         await self.app(scope, receive, send)

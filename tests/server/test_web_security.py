@@ -25,7 +25,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import Engine
 
 from server.app import create_app
-from server.db import Database, create_database_engine, upgrade_database
+from server.db import Database, DatabaseReadOnlyError, create_database_engine, upgrade_database
 from server.settings import Settings
 from tests.server.conftest import (
     ADMIN_PASSWORD,
@@ -529,3 +529,44 @@ def test_a_login_on_a_read_only_database_is_a_clear_503(tmp_path: Path, settings
             assert "read-only" in response.json()["detail"]
     finally:
         read_only.dispose()
+
+
+# --- OpenAPI ------------------------------------------------------------------------------------------------
+
+
+def test_openapi_documents_401_403_and_413_where_they_apply(client: TestClient) -> None:
+    paths = client.get("/openapi.json").json()["paths"]
+    start = paths["/api/v1/sessions/{session_id}/start"]["post"]["responses"]
+    assert {"401", "403"} <= start.keys() and "413" not in start  # no body
+    create_patient_ = paths["/api/v1/patients"]["post"]["responses"]
+    assert {"401", "403", "413", "422"} <= create_patient_.keys()
+    assert "X-Requested-With" in create_patient_["403"]["description"]
+    login_ = paths["/api/v1/auth/login"]["post"]["responses"]
+    assert {"403", "413", "429"} <= login_.keys() and login_["401"]["description"] == "Wrong username or password"
+    assert "401" not in paths["/api/v1/health"]["get"]["responses"]
+
+
+@pytest.mark.postgres
+def test_a_read_only_postgresql_database_is_refused_at_start_and_answers_503(
+    tmp_path: Path, settings: Settings
+) -> None:
+    scratch = scratch_database("postgresql", tmp_path)
+    try:
+        upgrade_database(scratch.engine)
+        _seed_accounts(scratch.engine, "postgresql")
+        schema = scratch.url.rsplit("%3D", 1)[-1]
+        read_only = create_database_engine(
+            scratch.url.split("?", 1)[0],
+            connect_args={"options": f"-csearch_path={schema} -cdefault_transaction_read_only=on"},
+        )
+        try:
+            with pytest.raises(DatabaseReadOnlyError, match="is read-only"):
+                upgrade_database(read_only)
+            with TestClient(create_app(settings, database=Database(read_only), worker=None)) as client:
+                response = login(client, "admin", ADMIN_PASSWORD)
+                assert response.status_code == 503, response.text
+                assert "is read-only: nothing was written" in response.json()["detail"]
+        finally:
+            read_only.dispose()
+    finally:
+        scratch.drop()
