@@ -15,31 +15,21 @@ import httpx
 import pytest
 
 from tests.e2e.conftest import ADMIN, CHROMIUM_ARGS, free_port
+from tests.server.conftest import PATIENT, SEGMENT
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 playwright_api = pytest.importorskip("playwright.sync_api")
 expect = playwright_api.expect
 
-PATIENT = {
-    "identifier": "MRN-CSRF-1",
-    "name": "Cross Site",
-    "date_of_birth": "1950-02-03",
-    "sex": "female",
-    "height_m": 1.65,
-    "body_mass_kg": 60.0,
-    "diagnosis": "stroke",
-    "affected_side": "left",
-}
-SEGMENT = {"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.3, "frequency_hz": 0.5}, "duration_s": 20.0}
-
 
 def _booked_session(api: httpx.Client) -> int:
-    patient = api.post("/api/v1/patients", json=PATIENT)
+    patient = api.post("/api/v1/patients", json={**PATIENT, "identifier": "MRN-CSRF-1"})
     assert patient.status_code == 201, patient.text
     patient_id = patient.json()["id"]
     prescription = api.post(
-        "/api/v1/prescriptions", json={"patient_id": patient_id, "name": "CSRF probe", "segments": [SEGMENT]}
+        "/api/v1/prescriptions",
+        json={"patient_id": patient_id, "name": "CSRF probe", "segments": [{**SEGMENT, "duration_s": 20.0}]},
     )
     assert prescription.status_code == 201, prescription.text
     booking = api.post(

@@ -523,27 +523,16 @@ def test_a_login_on_a_read_only_database_is_a_clear_503(tmp_path: Path, settings
     writable.dispose()
     read_only = create_database_engine(f"sqlite:///file:{database_file}?mode=ro&uri=true")
     try:
-        with TestClient(create_app(settings, database=Database(read_only), worker=None)) as client:
-            response = login(client, "admin", ADMIN_PASSWORD)
-            assert response.status_code == 503, response.text
-            assert "read-only" in response.json()["detail"]
+        assert_login_is_refused_as_read_only(settings, read_only)
     finally:
         read_only.dispose()
 
 
-# --- OpenAPI ------------------------------------------------------------------------------------------------
-
-
-def test_openapi_documents_401_403_and_413_where_they_apply(client: TestClient) -> None:
-    paths = client.get("/openapi.json").json()["paths"]
-    start = paths["/api/v1/sessions/{session_id}/start"]["post"]["responses"]
-    assert {"401", "403"} <= start.keys() and "413" not in start  # no body
-    create_patient_ = paths["/api/v1/patients"]["post"]["responses"]
-    assert {"401", "403", "413", "422"} <= create_patient_.keys()
-    assert "X-Requested-With" in create_patient_["403"]["description"]
-    login_ = paths["/api/v1/auth/login"]["post"]["responses"]
-    assert {"403", "413", "429"} <= login_.keys() and login_["401"]["description"] == "Wrong username or password"
-    assert "401" not in paths["/api/v1/health"]["get"]["responses"]
+def assert_login_is_refused_as_read_only(settings: Settings, read_only: Engine) -> None:
+    with TestClient(create_app(settings, database=Database(read_only), worker=None)) as client:
+        response = login(client, "admin", ADMIN_PASSWORD)
+        assert response.status_code == 503, response.text
+        assert "is read-only: nothing was written" in response.json()["detail"]
 
 
 @pytest.mark.postgres
@@ -562,11 +551,23 @@ def test_a_read_only_postgresql_database_is_refused_at_start_and_answers_503(
         try:
             with pytest.raises(DatabaseReadOnlyError, match="is read-only"):
                 upgrade_database(read_only)
-            with TestClient(create_app(settings, database=Database(read_only), worker=None)) as client:
-                response = login(client, "admin", ADMIN_PASSWORD)
-                assert response.status_code == 503, response.text
-                assert "is read-only: nothing was written" in response.json()["detail"]
+            assert_login_is_refused_as_read_only(settings, read_only)
         finally:
             read_only.dispose()
     finally:
         scratch.drop()
+
+
+# --- OpenAPI ------------------------------------------------------------------------------------------------
+
+
+def test_openapi_documents_401_403_and_413_where_they_apply(client: TestClient) -> None:
+    paths = client.get("/openapi.json").json()["paths"]
+    start = paths["/api/v1/sessions/{session_id}/start"]["post"]["responses"]
+    assert {"401", "403"} <= start.keys() and "413" not in start  # no body
+    create_patient_ = paths["/api/v1/patients"]["post"]["responses"]
+    assert {"401", "403", "413", "422"} <= create_patient_.keys()
+    assert "X-Requested-With" in create_patient_["403"]["description"]
+    login_ = paths["/api/v1/auth/login"]["post"]["responses"]
+    assert {"403", "413", "429"} <= login_.keys() and login_["401"]["description"] == "Wrong username or password"
+    assert "401" not in paths["/api/v1/health"]["get"]["responses"]
