@@ -258,8 +258,8 @@ def create_app(
 
 
 def _security_middleware(app: FastAPI, settings: Settings) -> None:
-    """Added innermost first: a request meets the security headers, the proxy headers (when proxies are
-    configured), the CSRF check, the body limit, then CORS."""
+    """A request meets the security headers, the proxy headers (when proxies are configured), the CSRF check,
+    the body limit, then CORS (`add_middleware` adds outside what is there, so innermost first)."""
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,
@@ -276,7 +276,10 @@ def _security_middleware(app: FastAPI, settings: Settings) -> None:
     )
     if settings.trusted_proxies:
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=settings.trusted_proxies)
-    app.add_middleware(SecurityHeadersMiddleware, viz_port=settings.viz_port if settings.viz_enabled else None)
+    # Outside Starlette's outermost error middleware, so that even a crash's bare 500 carries the headers.
+    build_stack = app.build_middleware_stack
+    viz_port = settings.viz_port if settings.viz_enabled else None
+    app.build_middleware_stack = lambda: SecurityHeadersMiddleware(build_stack(), viz_port=viz_port)  # type: ignore[method-assign]
 
 
 def _version() -> str:

@@ -161,8 +161,28 @@ def test_security_headers_on_every_response(client: TestClient, settings: Settin
     docs = client.get("/docs")
     assert docs.status_code == 200
     assert "script-src 'self' 'unsafe-inline'" in docs.headers["content-security-policy"]
-    refused = client.post("/api/v1/auth/logout", cookies={COOKIE: "x"}, headers={"Origin": EVIL_ORIGIN})
+    client.cookies.set(COOKIE, "x")
+    refused = client.post("/api/v1/auth/logout", headers={"Origin": EVIL_ORIGIN})
     assert refused.status_code == 403 and refused.headers["x-content-type-options"] == "nosniff"
+
+
+def test_even_a_crash_answers_with_the_security_headers(settings: Settings, database: Database) -> None:
+    app = create_app(settings, database=database, worker=None)
+
+    def crash() -> None:
+        raise RuntimeError("a bug")
+
+    app.add_api_route("/api/v1/test-crash", crash)
+    app.router.routes.insert(0, app.router.routes.pop())  # before the web app's catch-all mount at /
+    with TestClient(app, raise_server_exceptions=False) as client:
+        response = client.get("/api/v1/test-crash")
+    assert response.status_code == 500
+    assert response.headers["x-content-type-options"] == "nosniff" and "content-security-policy" in response.headers
+
+
+def test_a_login_posted_from_another_site_is_refused(client: TestClient, seed: Seed) -> None:
+    assert login(client, "admin", ADMIN_PASSWORD, headers={"Origin": EVIL_ORIGIN}).status_code == 403
+    assert login(client, "admin", ADMIN_PASSWORD, headers={"Origin": SERVED_ORIGIN}).status_code == 200
 
 
 # --- defect 8: throttling -----------------------------------------------------------------------------
