@@ -39,9 +39,9 @@ from server.security import (
     RequestBodyGuard,
     SecurityHeadersMiddleware,
     document_security_responses,
-    excerpt,
     install_log_redaction,
     safe_validation_errors,
+    shown_value,
 )
 from server.sessions.recorder import SessionRecorder
 from server.sessions.worker import WorkerControl, start_worker
@@ -92,7 +92,7 @@ def _error_handlers(app: FastAPI) -> None:
         detail = [
             {
                 "loc": ["body", *error.field.split(".")],
-                "msg": f"{error.field} = {excerpt(repr(error.value), 80)}: {error.limit}",
+                "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
                 "type": "value_error",
             }
         ]

@@ -327,14 +327,22 @@ def _sendable(value: Any) -> Any:
     return excerpt(value) if isinstance(value, float) else value
 
 
+def _is_secret(location: Iterable[Any]) -> bool:
+    return any(str(part).lower() in SECRET_FIELDS for part in location)
+
+
+def shown_value(field: str, value: Any) -> str:
+    """How a refusal names a value: its repr, cut short; never a secret's."""
+    return "(not shown)" if _is_secret(field.split(".")) else str(excerpt(repr(value), 2 * EXCERPT_CHARS))
+
+
 def safe_validation_errors(errors: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """FastAPI's 422 details with the input cut to a short excerpt, and a secret's value never shown."""
     safe = []
     for error in errors:
         item = {key: value for key, value in error.items() if key != "input"}
         if "input" in error:
-            secret = any(str(part).lower() in SECRET_FIELDS for part in error.get("loc", ()))
-            item["input"] = "(not shown)" if secret else excerpt(error["input"])
+            item["input"] = "(not shown)" if _is_secret(error.get("loc", ())) else excerpt(error["input"])
         safe.append(_sendable(item))
     return safe
 

@@ -26,6 +26,7 @@ from sqlalchemy import Engine
 
 from server.app import create_app
 from server.db import Database, DatabaseReadOnlyError, create_database_engine, upgrade_database
+from server.security import shown_value
 from server.settings import Settings
 from tests.server.conftest import (
     ADMIN_PASSWORD,
@@ -447,6 +448,13 @@ def test_a_422_never_echoes_a_password_or_a_long_input(client: TestClient, seed:
     refused = client.post("/api/v1/patients", json={"name": long_name}, headers=seed.headers())
     assert refused.status_code == 422
     assert "Q" * 200 not in refused.text and len(refused.content) < 4000
+
+
+def test_domain_refusals_cut_long_values_and_never_show_secrets() -> None:
+    assert shown_value("segments[0].cue.rows", "1,2\n" * 10_000).endswith(" characters)")
+    assert len(shown_value("segments[0].cue.rows", "1,2\n" * 10_000)) < 120
+    assert shown_value("duration_s", 1e9) == "1000000000.0"
+    assert shown_value("account.password", "hunter2-hunter2") == "(not shown)"
 
 
 def test_bodies_over_the_limit_get_413_before_parsing(settings: Settings, database: Database, seed: Seed) -> None:
