@@ -143,7 +143,8 @@ _BASE_POLICY = "default-src 'self'; object-src 'none'; base-uri 'self'; form-act
 DOCUMENTATION_POLICY = (
     f"{_BASE_POLICY}; script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
     "style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net https://fonts.googleapis.com; "
-    "font-src 'self' data: https://fonts.gstatic.com; img-src 'self' data: https://fastapi.tiangolo.com; "
+    "font-src 'self' data: https://fonts.gstatic.com; "
+    "img-src 'self' data: https://fastapi.tiangolo.com https://cdn.redoc.ly; "
     "worker-src 'self' blob:; connect-src 'self'"
 )
 
