@@ -134,13 +134,18 @@ def test_configured_origins_are_allowed(settings: Settings, database: Database, 
         assert client.post("/api/v1/auth/logout", headers=headers).status_code == 204
 
 
-def test_a_cross_origin_websocket_is_refused(client: TestClient, seed: Seed) -> None:
+def test_a_cross_origin_websocket_is_refused(robot_client: TestClient, seed: Seed) -> None:
+    """The telemetry socket authenticates with the cookie: another site must not watch a patient's session."""
     from starlette.websockets import WebSocketDisconnect
 
-    client.cookies.set(COOKIE, seed.therapist_token)
+    booked = booked_session(robot_client, seed.headers())
+    robot_client.cookies.set(COOKIE, seed.therapist_token)
+    path = f"/api/v1/sessions/{booked.session_id}/telemetry"
+    with robot_client.websocket_connect(path, headers={"Origin": SERVED_ORIGIN}):
+        pass  # the console's own page is accepted
     with (
         pytest.raises(WebSocketDisconnect) as refused,
-        client.websocket_connect("/api/v1/sessions/1/telemetry", headers={"Origin": EVIL_ORIGIN}),
+        robot_client.websocket_connect(path, headers={"Origin": EVIL_ORIGIN}),
     ):
         pass
     assert refused.value.code == 1008
