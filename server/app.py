@@ -13,7 +13,6 @@ import hashlib
 import hmac
 import importlib.metadata
 import logging
-import math
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -23,15 +22,27 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy.exc import IntegrityError, InternalError, OperationalError
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from core.robot import default_twin, load_twin
 from server.auth.dependencies import AuthState
 from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
-from server.db import Database, create_database_engine, load_models, upgrade_database
+from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.prescriptions.validation import robot_limits
+from server.security import (
+    CSRF_HEADER,
+    CSRFMiddleware,
+    OriginPolicy,
+    RequestBodyGuard,
+    SecurityHeadersMiddleware,
+    document_security_responses,
+    install_log_redaction,
+    safe_validation_errors,
+    shown_value,
+)
 from server.sessions.recorder import SessionRecorder
 from server.sessions.worker import WorkerControl, start_worker
 from server.settings import Settings
@@ -61,21 +72,10 @@ def _install_access_log_redaction() -> None:
         access_logger.addFilter(RedactQueryStrings())
 
 
-def _json_safe(value: Any) -> Any:
-    """Echoed input with non-finite numbers as text: JSON has no NaN, and a refusal must not fail to send."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    if isinstance(value, dict):
-        return {key: _json_safe(item) for key, item in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(item) for item in value]
-    return value
-
-
 def _error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def unprocessable(_request: Request, error: RequestValidationError) -> JSONResponse:
-        detail = _json_safe(jsonable_encoder(error.errors()))
+        detail = jsonable_encoder(safe_validation_errors(error.errors()))
         return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
     @app.exception_handler(NotFoundError)
@@ -92,7 +92,7 @@ def _error_handlers(app: FastAPI) -> None:
         detail = [
             {
                 "loc": ["body", *error.field.split(".")],
-                "msg": f"{error.field} = {error.value!r}: {error.limit}",
+                "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
                 "type": "value_error",
             }
         ]
@@ -101,6 +101,17 @@ def _error_handlers(app: FastAPI) -> None:
     @app.exception_handler(WorkerUnavailableError)
     async def no_worker(_request: Request, error: WorkerUnavailableError) -> JSONResponse:
         return JSONResponse({"detail": str(error)}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE)
+
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(InternalError)
+    async def database_refused(_request: Request, error: OperationalError | InternalError) -> JSONResponse:
+        # The database itself failed (read-only, full, locked, unreachable): not the request's fault.
+        database: Database | None = app.state.database
+        reason = refused_write_reason(error, database.engine if database is not None else None)
+        if reason is None and isinstance(error, InternalError):
+            raise error
+        detail = reason or f"the database is unavailable: {str(error.orig).splitlines()[0][:200]}"
+        return JSONResponse({"detail": f"{detail}: nothing was written"}, status_code=503)
 
     @app.exception_handler(IntegrityError)
     async def integrity(_request: Request, _error: IntegrityError) -> JSONResponse:
@@ -234,21 +245,41 @@ def create_app(
     app.state.worker = None
     app.state.recorder = None
     app.state.viz = None
+    _security_middleware(app, settings)
+    _error_handlers(app)
+    document_security_responses(app)
+    app.include_router(_api_router())
+    frontend = settings.resolved_frontend_dir()
+    if frontend is not None:
+        app.mount("/", StaticFiles(directory=frontend, html=True), name="frontend")
+    _install_access_log_redaction()
+    install_log_redaction()
+    return app
+
+
+def _security_middleware(app: FastAPI, settings: Settings) -> None:
+    """A request meets the security headers, the proxy headers (when proxies are configured), the CSRF check,
+    the body limit, then CORS (`add_middleware` adds outside what is there, so innermost first)."""
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,
             allow_origins=settings.cors_origins,
             allow_credentials=True,
             allow_methods=["GET", "POST", "PUT", "PATCH", "DELETE"],
-            allow_headers=["Authorization", "Content-Type"],
+            allow_headers=["Authorization", "Content-Type", CSRF_HEADER],
         )
-    _error_handlers(app)
-    app.include_router(_api_router())
-    frontend = settings.resolved_frontend_dir()
-    if frontend is not None:
-        app.mount("/", StaticFiles(directory=frontend, html=True), name="frontend")
-    _install_access_log_redaction()
-    return app
+    app.add_middleware(RequestBodyGuard, max_body_bytes=settings.max_request_body_bytes)
+    app.add_middleware(
+        CSRFMiddleware,
+        policy=OriginPolicy([*settings.allowed_origins, *settings.cors_origins]),
+        cookie_name=settings.cookie_name,
+    )
+    if settings.trusted_proxies:
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=settings.trusted_proxies)
+    # Outside Starlette's outermost error middleware, so that even a crash's bare 500 carries the headers.
+    build_stack = app.build_middleware_stack
+    viz_port = settings.viz_port if settings.viz_enabled else None
+    app.build_middleware_stack = lambda: SecurityHeadersMiddleware(build_stack(), viz_port=viz_port)  # type: ignore[method-assign]
 
 
 def _version() -> str:

@@ -19,6 +19,7 @@ from typing import Annotated, Any, ParamSpec, TypeVar
 from fastapi import Depends, Request
 from sqlalchemy import DateTime, Engine, MetaData, create_engine, event, text
 from sqlalchemy.engine import Connection, Dialect, make_url
+from sqlalchemy.exc import DBAPIError, InternalError, OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.types import TypeDecorator
 
@@ -153,9 +154,68 @@ def alembic_config(connection: Connection | None = None, url: str | None = None)
     return config
 
 
+class DatabaseReadOnlyError(RuntimeError):
+    """The database refuses writes (a read-only file or mount, a read-only PostgreSQL transaction or standby)."""
+
+
+READ_ONLY_MESSAGES = ("readonly database", "read-only", "read only")
+PG_READ_ONLY_TRANSACTION = "25006"
+
+
+def database_label(engine: Engine) -> str:
+    """How messages name the database: its file for SQLite, its URL (without password) otherwise."""
+    url = engine.url
+    if url.get_backend_name() == "sqlite":
+        name = (url.database or ":memory:").removeprefix("file:").split("?", 1)[0]
+        return f"database file {Path(name).resolve() if name != ':memory:' else name}"
+    return f"database {url.render_as_string(hide_password=True)}"
+
+
+def refused_write_reason(error: DBAPIError, engine: Engine | None) -> str | None:
+    """'database … is read-only' when `error` is the database refusing a write as read-only; else None."""
+    original = error.orig
+    read_only = getattr(original, "sqlstate", None) == PG_READ_ONLY_TRANSACTION or any(
+        marker in str(original).lower() for marker in READ_ONLY_MESSAGES
+    )
+    if not read_only:
+        return None
+    return f"{database_label(engine) if engine is not None else 'the database'} is read-only"
+
+
+def read_only_reason(engine: Engine) -> str | None:
+    """Why this database would refuse writes, found without writing anything; None when it accepts them."""
+    try:
+        with engine.connect() as connection:
+            if engine.dialect.name == "postgresql":
+                standby = connection.exec_driver_sql("SELECT pg_is_in_recovery()").scalar()
+                read_only = connection.exec_driver_sql("SHOW transaction_read_only").scalar() == "on"
+                return f"{database_label(engine)} is read-only" if standby or read_only else None
+            if engine.dialect.name == "sqlite":
+                # A write rolled back: SQLite tells a read-only file (chmod, chattr +i, ro mount) only on a write.
+                transaction = connection.begin()
+                try:
+                    connection.exec_driver_sql("CREATE TABLE ssp_rehab_write_probe (probe INTEGER)")
+                finally:
+                    transaction.rollback()
+    except (OperationalError, InternalError) as error:
+        reason = refused_write_reason(error, engine)
+        if reason is None:
+            raise
+        return reason
+    return None
+
+
+def require_writable(engine: Engine) -> None:
+    reason = read_only_reason(engine)
+    if reason is not None:
+        raise DatabaseReadOnlyError(f"{reason}: the console cannot record sessions; make it writable and start again")
+
+
 def upgrade_database(engine: Engine, revision: str = "head") -> None:
+    """Check that the database accepts writes, then migrate it (Alembic) to `revision`."""
     from alembic import command
 
+    require_writable(engine)
     with engine.begin() as connection:
         command.upgrade(alembic_config(connection), revision)
 

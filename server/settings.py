@@ -40,12 +40,30 @@ class Settings(BaseSettings):
     # The embedded default listens on loopback over plain HTTP, where a Secure cookie would never be sent back.
     cookie_secure: bool = Field(default=False, description="Set the Secure flag; turn on whenever served over HTTPS.")
     cors_origins: list[str] = Field(default_factory=list, description="Allowed browser origins; empty: CORS closed.")
+    allowed_origins: list[str] = Field(
+        default_factory=list,
+        description="Browser origins (scheme://host[:port]) allowed to send cookie-authenticated changes, besides "
+        "the origin the console is served from (and cors_origins). Set it when a proxy rewrites the Host header.",
+    )
+    trusted_proxies: list[str] = Field(
+        default_factory=list,
+        description="Addresses or networks (CIDR) of reverse proxies whose X-Forwarded-For and X-Forwarded-Proto "
+        "are believed; empty: the headers are ignored and the connecting address is the client.",
+    )
+    max_request_body_bytes: int = Field(
+        default=4 * 1024 * 1024,
+        ge=1024,
+        description="Largest request body accepted (bytes); larger ones get 413 before they are parsed.",
+    )
 
     login_max_failures: int = Field(
         default=5, ge=1, description="Failed logins per username or client before a lockout."
     )
     login_window_s: float = Field(
-        default=300.0, gt=0, description="Window in which failures count, and lockout length."
+        default=300.0,
+        gt=0,
+        description="Window in which failures count, and the first lockout's length; repeated lockouts back off "
+        "(twice the failures within four times the window, and so on).",
     )
 
     telemetry_rate_hz: float = Field(default=30.0, gt=0, le=120, description="WebSocket telemetry frame rate.")

@@ -1,6 +1,7 @@
 // The REST API under /api/v1 (issue 6). Authentication is the HttpOnly session cookie set at login,
 // so no token is ever kept in script-readable storage.
 export const API = "/api/v1";
+export const CSRF_HEADER = "X-Requested-With";
 
 export class ApiError extends Error {
   constructor(status, detail) {
@@ -36,7 +37,8 @@ function describeDetail(detail) {
 }
 
 export async function request(method, path, body, { raw = false } = {}) {
-  const options = { method, credentials: "same-origin", headers: {} };
+  // The custom header proves the request comes from the console's own pages (CSRF check, docs/service.md).
+  const options = { method, credentials: "same-origin", headers: { [CSRF_HEADER]: "ssp-rehab" } };
   if (body !== undefined) {
     options.headers["Content-Type"] = "application/json";
     options.body = JSON.stringify(body);

@@ -12,7 +12,7 @@ const estopButton = document.getElementById("estop");
 async function emergencyStop() {
   estopButton.classList.add("sent");
   try {
-    const response = await fetch("/api/v1/estop", { method: "POST", credentials: "same-origin" });
+    const response = await fetch("/api/v1/estop", { method: "POST", credentials: "same-origin", headers: { "X-Requested-With": "ssp-rehab" } });
     if (response.ok) {
       banner("error", `EMERGENCY STOP sent at ${new Date().toLocaleTimeString()}. The robot is stopped; reset it from the session console once safe.`, { key: "estop", sticky: true });
     } else if (response.status === 401) {

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Request, Response, status
 
-from server.auth import service
+from server.auth import service, throttle
 from server.auth.dependencies import CurrentUser, auth_state, authenticated_claims, current_user
 from server.auth.schemas import LoginRequest, LoginResult
 from server.auth.security import TokenClaims
@@ -26,20 +27,21 @@ def login(data: LoginRequest, request: Request, response: Response, session: Ses
     """Answers with a session cookie (HttpOnly, SameSite=Strict) and the same token as a bearer token."""
     state = auth_state(request)
     settings = request.app.state.settings
-    user_key = f"user:{data.username.lower()}"
-    throttle_keys = (user_key, f"client:{request.client.host if request.client else 'unknown'}")
-    retry_after = state.throttle.retry_after_s(throttle_keys)
+    user = service.account_named(session=session, username=data.username)
+    # A name that is no account is throttled on its own: its guesses never lock out a real account.
+    account = throttle.account_bucket(user.id) if user is not None else throttle.unknown_name_bucket(data.username)
+    addresses = [throttle.address_bucket(request.client.host if request.client else "unknown")] if user else []
+    retry_after = state.throttle.reserve(session, [account, *addresses])
     if retry_after is not None:
         raise HTTPException(
             status.HTTP_429_TOO_MANY_REQUESTS,
-            detail=f"too many failed logins: try again in {retry_after:.0f} s",
-            headers={"Retry-After": str(max(1, round(retry_after)))},
+            detail=f"too many failed logins: try again in {math.ceil(retry_after)} s",
+            headers={"Retry-After": str(math.ceil(retry_after))},
         )
-    user = service.authenticate(session=session, username=data.username, password=data.password)
-    if user is None:
-        state.throttle.record_failure(throttle_keys)
+    matched = service.password_matches(user, data.password)  # first: an unknown name costs the same time
+    if not matched or user is None:
         raise HTTPException(status.HTTP_401_UNAUTHORIZED, detail="wrong username or password")
-    state.throttle.record_success((user_key,))
+    state.throttle.succeeded(session, account=account, others=addresses)
     token, expires_at = service.open_login_session(
         session=session, user=user, signer=state.signer, lifetime_s=settings.token_lifetime_s
     )

@@ -14,11 +14,15 @@ from server.db import utc_now, writes
 from server.users.models import User
 
 
-def authenticate(*, session: Session, username: str, password: str) -> User | None:
-    """The active account these credentials belong to, or None (same cost whether or not the user exists)."""
-    user = session.scalar(select(User).where(func.lower(User.username) == username.lower()))
+def account_named(*, session: Session, username: str) -> User | None:
+    """The account with this username (any case), active or not."""
+    return session.scalar(select(User).where(func.lower(User.username) == username.lower()))
+
+
+def password_matches(user: User | None, password: str) -> bool:
+    """True for an active account and its password; the same cost whether or not the account exists."""
     password_hash = user.password_hash if user is not None and user.is_active else None
-    return user if verify_password(password_hash, password) else None
+    return verify_password(password_hash, password)
 
 
 @writes

@@ -1,46 +1,171 @@
-"""Login throttling: after `max_failures` failed logins within `window_s`, by username or by client
-address, further attempts are refused (429) until the window has passed. In memory, per process."""
+"""Login throttling with the `limits` library, its counters kept in the database so that every web process
+and every console on the same database shares them (issue 15 §3).
+
+Two kinds of bucket, counted separately: the account (any address), and the client address (any account).
+A failure for a username that does not exist counts only towards that name, so guessing at unknown users
+never locks out a real account from the same address; those guesses can win nothing.
+
+Each bucket has tiers that back off: `max_failures` within `window_s`, then twice as many within four
+times the window, and so on. An attempt takes a slot in every tier *before* the password is checked and
+keeps it when the password is wrong, so parallel guesses cannot outrun the count: the counter is one atomic
+upsert. A refused attempt gives its slots back (it checked nothing); a success clears the account's record
+and gives back the address's slot.
+"""
 
 from __future__ import annotations
 
-import threading
+import hashlib
+import math
 import time
-from collections import deque
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Sequence
+from typing import cast
+
+from limits import RateLimitItem, RateLimitItemPerSecond
+from limits.storage import Storage
+from limits.strategies import FixedWindowRateLimiter
+from sqlalchemy import case, delete, select
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.orm import Session
+
+from server.auth.models import RateLimitCounter
+from server.db import write_transaction
+
+Bucket = tuple[str, str]  # (kind, identifier): ("account", "17"), ("address", "10.0.0.5"), ("name", <digest>)
+BACKOFF_TIERS = 3
+_COUNTERS = RateLimitCounter
+
+
+class DatabaseStorage(Storage):
+    """A `limits` storage on the service's database (SQLite or PostgreSQL) through one ORM session.
+
+    `incr` is a single INSERT … ON CONFLICT DO UPDATE … RETURNING, atomic on both backends (PostgreSQL
+    locks the row; SQLite's writer lock is taken up front by `write_transaction`). Only fixed windows."""
+
+    STORAGE_SCHEME = None  # built per request around the request's session, never from a URI
+
+    def __init__(self, session: Session, clock: Callable[[], float] = time.time) -> None:
+        super().__init__()
+        self._session = session
+        self._clock = clock
+
+    @property
+    def base_exceptions(self) -> type[Exception] | tuple[type[Exception], ...]:
+        return SQLAlchemyError
+
+    def incr(self, key: str, expiry: int, amount: int = 1) -> int:
+        now = self._clock()
+        dialect = self._session.get_bind().dialect.name
+        insert = postgresql.insert(_COUNTERS) if dialect == "postgresql" else sqlite.insert(_COUNTERS)
+        fresh_count = max(amount, 0)
+        expired = _COUNTERS.expires_at <= now
+        added = _COUNTERS.count + amount
+        statement = (
+            insert.values(key=key, count=fresh_count, expires_at=now + expiry)
+            .on_conflict_do_update(
+                index_elements=[_COUNTERS.key],
+                set_={
+                    "count": case((expired, fresh_count), (added < 0, 0), else_=added),
+                    "expires_at": case((expired, now + expiry), else_=_COUNTERS.expires_at),
+                },
+            )
+            .returning(_COUNTERS.count)
+        )
+        with write_transaction(self._session):
+            count = int(self._session.execute(statement).scalar_one())
+            if count == fresh_count:  # a new window: a good moment to drop the windows that have ended
+                self._session.execute(delete(_COUNTERS).where(_COUNTERS.expires_at <= now))
+        return count
+
+    def _row(self, key: str) -> tuple[int, float] | None:
+        row = self._session.execute(select(_COUNTERS.count, _COUNTERS.expires_at).where(_COUNTERS.key == key)).first()
+        self._session.commit()  # end the read transaction: it must not pin a snapshot (or SQLite's WAL)
+        if row is None or row[1] <= self._clock():
+            return None
+        return int(row[0]), float(row[1])
+
+    def get(self, key: str) -> int:
+        row = self._row(key)
+        return 0 if row is None else row[0]
+
+    def get_expiry(self, key: str) -> float:
+        row = self._row(key)
+        return self._clock() if row is None else row[1]
+
+    def check(self) -> bool:
+        try:
+            self._session.execute(select(1))
+        except SQLAlchemyError:
+            return False
+        return True
+
+    def reset(self) -> int | None:
+        with write_transaction(self._session):
+            result = self._session.execute(delete(_COUNTERS))
+            return cast(int, getattr(result, "rowcount", 0))
+
+    def clear(self, key: str) -> None:
+        with write_transaction(self._session):
+            self._session.execute(delete(_COUNTERS).where(_COUNTERS.key == key))
+
+
+def account_bucket(user_id: int) -> Bucket:
+    return ("account", str(user_id))
+
+
+def unknown_name_bucket(username: str) -> Bucket:
+    # A digest: the typed name may be long or odd, and it need not be readable in the table.
+    return ("name", hashlib.sha256(username.lower().encode()).hexdigest()[:32])
+
+
+def address_bucket(address: str) -> Bucket:
+    return ("address", address)
 
 
 class LoginThrottle:
-    def __init__(self, max_failures: int, window_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, max_failures: int, window_s: float, *, tiers: int = BACKOFF_TIERS, clock: Callable[[], float] = time.time
+    ) -> None:
         self.max_failures = max_failures
         self.window_s = window_s
-        self._clock = clock
-        self._failures: dict[str, deque[float]] = {}
-        self._lock = threading.Lock()
+        self.clock = clock
+        window = max(1, math.ceil(window_s))
+        self.limits: list[RateLimitItem] = [
+            RateLimitItemPerSecond(max_failures * 2**tier, window * 4**tier, namespace="login") for tier in range(tiers)
+        ]
 
-    def _recent(self, key: str, now: float) -> deque[float]:
-        failures = self._failures.setdefault(key, deque())
-        while failures and now - failures[0] >= self.window_s:
-            failures.popleft()
-        return failures
+    def _limiter(self, session: Session) -> tuple[FixedWindowRateLimiter, DatabaseStorage]:
+        storage = DatabaseStorage(session, lambda: self.clock())
+        return FixedWindowRateLimiter(storage), storage
 
-    def retry_after_s(self, keys: Iterable[str]) -> float | None:
-        """Seconds until the first of `keys` may try again, or None when none of them is locked out."""
-        now = self._clock()
-        waits = []
-        with self._lock:
-            for key in keys:
-                failures = self._recent(key, now)
-                if len(failures) >= self.max_failures:
-                    waits.append(self.window_s - (now - failures[-self.max_failures]))
-        return max(waits) if waits else None
+    def reserve(self, session: Session, buckets: Sequence[Bucket]) -> float | None:
+        """Take a slot for one login attempt in every tier of `buckets`; None when the attempt may go ahead,
+        else the seconds until it may (and nothing is taken)."""
+        limiter, storage = self._limiter(session)
+        taken: list[tuple[RateLimitItem, Bucket]] = []
+        for bucket in buckets:
+            for limit in self.limits:
+                taken.append((limit, bucket))
+                if not limiter.hit(limit, *bucket):
+                    for item, held in taken:
+                        storage.incr(item.key_for(*held), item.get_expiry(), amount=-1)
+                    return self._retry_after_s(limiter, buckets)
+        return None
 
-    def record_failure(self, keys: Iterable[str]) -> None:
-        now = self._clock()
-        with self._lock:
-            for key in keys:
-                self._recent(key, now).append(now)
+    def _retry_after_s(self, limiter: FixedWindowRateLimiter, buckets: Sequence[Bucket]) -> float:
+        now = self.clock()
+        waits = [
+            stats.reset_time - now
+            for bucket in buckets
+            for limit in self.limits
+            if (stats := limiter.get_window_stats(limit, *bucket)).remaining == 0
+        ]
+        return max([1.0, *waits])
 
-    def record_success(self, keys: Iterable[str]) -> None:
-        with self._lock:
-            for key in keys:
-                self._failures.pop(key, None)
+    def succeeded(self, session: Session, *, account: Bucket, others: Sequence[Bucket]) -> None:
+        """The password was right: the account's record is cleared, the other buckets get their slot back."""
+        _limiter, storage = self._limiter(session)
+        for limit in self.limits:
+            storage.clear(limit.key_for(*account))
+            for bucket in others:
+                storage.incr(limit.key_for(*bucket), limit.get_expiry(), amount=-1)

@@ -76,7 +76,9 @@ def register(app: typer.Typer) -> None:
             f"ssp-rehab console on http://{host}:{port}/  (API docs: /docs)\n"
             f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}"
         )
-        uvicorn.run(application, host=host, port=port, log_level="info")
+        # X-Forwarded-For is believed only from SSP_REHAB_TRUSTED_PROXIES, by the app itself (server.security);
+        # uvicorn's own default would trust it from loopback.
+        uvicorn.run(application, host=host, port=port, log_level="info", proxy_headers=False)
 
     @app.command("create-user")
     def create_user(

@@ -55,6 +55,7 @@ websocket_router = APIRouter()
 
 NO_ROBOT = "no robot connected: the real-time worker is not running (records, schedules and exports still work)"
 ExportFormat = Literal["csv", "parquet", "json", "c3d"]
+LAST_EXPORT_DAY = dt.date.max - dt.timedelta(days=1)  # a range ends at the next day's midnight
 
 
 @writes
@@ -239,8 +240,8 @@ def export_study(
     request: Request,
     session: SessionDep,
     user: CurrentUser,
-    from_date: dt.date,
-    to_date: dt.date,
+    from_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
+    to_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
     diagnosis: Annotated[str | None, Query(max_length=200, pattern=NO_NUL_PATTERN)] = None,
 ) -> Response:
     """Pseudonymised session logs of every recorded run started from `from_date` to `to_date` (UTC days)."""
