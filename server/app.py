@@ -146,6 +146,7 @@ def _api_router() -> APIRouter:
     from server.sessions.routes import estop_router, websocket_router
     from server.sessions.routes import router as sessions_router
     from server.users.routes import router as users_router
+    from server.viz.proxy import router as viz_proxy_router
     from server.viz.routes import router as viz_router
 
     api = APIRouter(prefix=API_PREFIX)
@@ -168,6 +169,7 @@ def _api_router() -> APIRouter:
         estop_router,
         audit_router,
         viz_router,
+        viz_proxy_router,
         websocket_router,
     ):
         api.include_router(router)

@@ -6,11 +6,12 @@ A clinic that shares records between consoles points `SSP_REHAB_DATABASE_URL` at
 
 from __future__ import annotations
 
+import ipaddress
 import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 Backend = Literal["sim", "kinematic", "canopen"]
@@ -69,12 +70,27 @@ class Settings(BaseSettings):
     telemetry_rate_hz: float = Field(default=30.0, gt=0, le=120, description="WebSocket telemetry frame rate.")
     log_flush_interval_s: float = Field(default=1.0, gt=0, le=60, description="How often telemetry chunks are written.")
     viz_enabled: bool = Field(default=True, description="Serve the live 3D view (viser) on its own port.")
-    viz_host: str = Field(default="127.0.0.1", description="Interface the 3D view listens on.")
+    viz_host: str = Field(
+        default="127.0.0.1",
+        description="Loopback interface the 3D view listens on; browsers reach it only through the console's login.",
+    )
     viz_port: int = Field(default=8081, ge=1, le=65535, description="Port of the 3D view (embedded by the web app).")
     viz_rate_hz: float = Field(default=30.0, ge=30.0, le=120.0, description="3D view update rate.")
     frontend_dir: Path | None = Field(
         default=None, description="Static clinician app; default: frontend_static/ if present."
     )
+
+    @field_validator("viz_host")
+    @classmethod
+    def _viz_on_loopback(cls, value: str) -> str:
+        # viser has no login of its own: the console relays it (server/viz/proxy.py) to logged-in users only.
+        try:
+            loopback = value == "localhost" or ipaddress.ip_address(value).is_loopback
+        except ValueError:
+            loopback = False
+        if not loopback:
+            raise ValueError(f"viz_host = {value!r}: must be a loopback address (127.0.0.0/8, ::1 or localhost)")
+        return value
 
     def resolved_database_url(self) -> str:
         if self.database_url:

@@ -163,7 +163,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   // --- the 3D view -------------------------------------------------------------------------------
   const viz = await get("/viz").catch(() => ({ available: false, detail: "the 3D view status is unavailable" }));
   if (viz.available) {
-    vizHost.append(h("iframe.viz-frame#viz-frame", { src: `${location.protocol}//${location.hostname}:${viz.port}/`, title: "Live 3D view of the twin robot and the patient", loading: "eager" }));
+    vizHost.append(h("iframe.viz-frame#viz-frame", { src: "/api/v1/viz/view/", title: "Live 3D view of the twin robot and the patient", loading: "eager" }));
   } else {
     vizHost.append(h("p.panel", {}, `3D view unavailable: ${viz.detail}`));
   }

@@ -4,7 +4,7 @@ Live mode reads the real-time worker's latest state (the seqlock in shared memor
 `WorkerClient.latest_state()`), never the telemetry ring, so watching adds no load to the worker or
 the session recorder. Replay mode plays a finished run's recorded telemetry (stance pose and slider
 positions) in the same scene at its recorded speed. The view shows the robot's pose only, no patient
-data; see docs/ui.md for why it needs no login.
+data, but it is a patient's session, so browsers reach it only through the console's login (proxy.py).
 """
 
 from __future__ import annotations

@@ -1,0 +1,127 @@
+"""The 3D view behind the console's login. viser listens on loopback only; the console relays its page
+and its WebSocket to logged-in users, so nobody watches a patient's session by reaching viser's port.
+
+viser's client derives its WebSocket address from the page address, so the page served at
+`/api/v1/viz/view/` opens `ws(s)://<console>/api/v1/viz/view`, which is relayed here.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Any
+
+import httpx
+import websockets
+from fastapi import APIRouter, Depends, Request, WebSocket, status
+from fastapi.responses import Response
+from starlette.concurrency import run_in_threadpool
+from websockets.asyncio.client import connect as upstream_connect
+
+from server.auth.dependencies import auth_state, claims_for_token, current_user, token_from_request, user_for_claims
+from server.db import Database
+from server.errors import WorkerUnavailableError
+from server.viz.view import LiveView
+
+VIEW_PATH = "/viz/view"
+# viser's page runs a bundled app from an inline script and web workers; it shows only the scene.
+VIEW_PAGE_POLICY = (
+    "default-src 'self'; script-src 'self' 'unsafe-inline' 'unsafe-eval' blob:; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data: blob:; font-src 'self' data:; connect-src 'self' ws: wss: data: blob:; "
+    "worker-src 'self' blob:; object-src 'none'; base-uri 'self'; frame-ancestors 'self'"
+)
+MAX_MESSAGE_BYTES = 50 * 1024 * 1024  # viser's own limit
+
+router = APIRouter(tags=["3d view"])
+NO_VIEW = "the 3D view is not running (turned off with SSP_REHAB_VIZ_ENABLED=false, or its port was taken)"
+
+
+def _running_view(app: Any) -> LiveView | None:
+    view: LiveView | None = getattr(app.state, "viz", None)
+    return view if view is not None and view.server is not None else None
+
+
+@router.get(VIEW_PATH + "/", include_in_schema=True, dependencies=[Depends(current_user)])
+@router.get(VIEW_PATH + "/{path:path}", include_in_schema=False, dependencies=[Depends(current_user)])
+async def view_page(request: Request, path: str = "") -> Response:
+    """viser's page, relayed from its loopback port to a logged-in user."""
+    view = _running_view(request.app)
+    if view is None:
+        raise WorkerUnavailableError(NO_VIEW)
+    async with httpx.AsyncClient(timeout=10.0) as client:
+        upstream = await client.get(
+            f"http://127.0.0.1:{view.port}/{path}", params=request.query_params, headers={"Accept-Encoding": "identity"}
+        )
+    return Response(
+        upstream.content,
+        status_code=upstream.status_code,
+        media_type=upstream.headers.get("content-type"),
+        headers={"Content-Security-Policy": VIEW_PAGE_POLICY, "Cache-Control": "no-store"},
+    )
+
+
+def _refusal(database: Database, websocket: WebSocket) -> str | None:
+    """None when the socket belongs to a logged-in, active user; else why not."""
+    state = auth_state(websocket)
+    claims = claims_for_token(token_from_request(websocket, state.cookie_name), state)
+    if claims is None:
+        return "not authenticated"
+    with database.session() as session:
+        return None if user_for_claims(session, claims) is not None else "login session ended"
+
+
+@router.websocket(VIEW_PATH)
+async def view_socket(websocket: WebSocket) -> None:
+    """viser's WebSocket, relayed both ways once the user is known to be logged in."""
+    refusal = await run_in_threadpool(_refusal, websocket.app.state.database, websocket)
+    view = _running_view(websocket.app)
+    if refusal is None and view is None:
+        refusal = NO_VIEW
+    if refusal is not None or view is None:
+        await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=refusal)
+        return
+    offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
+    try:
+        upstream = await upstream_connect(
+            f"ws://127.0.0.1:{view.port}",
+            subprotocols=offered,  # viser checks its client's version in the subprotocol
+            max_size=MAX_MESSAGE_BYTES,
+            compression=None,
+        )
+    except (OSError, websockets.exceptions.WebSocketException):
+        await websocket.close(code=status.WS_1013_TRY_AGAIN_LATER, reason=NO_VIEW)
+        return
+    await websocket.accept(subprotocol=upstream.subprotocol)
+    async with upstream:
+        await _relay(websocket, upstream)
+
+
+async def _relay(browser: WebSocket, upstream: Any) -> None:
+    async def to_browser() -> None:
+        async for message in upstream:
+            if isinstance(message, bytes):
+                await browser.send_bytes(message)
+            else:
+                await browser.send_text(message)
+
+    async def to_viser() -> None:
+        while True:
+            message = await browser.receive()
+            if message["type"] == "websocket.disconnect":
+                return
+            if message.get("bytes") is not None:
+                await upstream.send(message["bytes"])
+            elif message.get("text") is not None:
+                await upstream.send(message["text"])
+
+    tasks = [asyncio.ensure_future(to_browser()), asyncio.ensure_future(to_viser())]
+    try:
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        with contextlib.suppress(Exception):
+            await browser.close()
