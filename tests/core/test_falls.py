@@ -187,7 +187,8 @@ def test_streaming_and_batch_agree_on_noisy_random_signals() -> None:
 
 
 def test_detectors_catch_a_simulated_fall_after_it_starts() -> None:
-    params = PatientParameters.preset("impaired", MASS_KG, 1.75)
+    # No protective response: the harness catches the patient.
+    params = PatientParameters.preset("impaired", MASS_KG, 1.75, step_probability=0.0, grab_probability=0.0)
     _, trial = simulate_trial(params, [Perturbation("translation", 2.0, 0.0, 3.0, 0.5)], 6.0, PERIOD_S, 1)
     events = detect_falls(
         FallDetectorConfig.for_patient(MASS_KG, 1.75),
