@@ -87,3 +87,66 @@ def test_a_half_m_s2_x_sine_session_completes_without_a_fall(backend: str, body_
     falls = [details for _, kind, _, details in events if kind == "fall"]
     assert not falls, f"{backend}, {body_mass_kg} kg: the session ended as a fall: {falls[0]}"
     assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, pipeline.supervisor.stop_reason
+
+
+class SteppedClock:
+    """perf_counter_ns for a pipeline ticked by the test: it advances one period per tick, or two when the
+    loop skipped a deadline, so that ticks × period and the true clock part as they do on a loaded worker."""
+
+    def __init__(self) -> None:
+        self.now_ns = 10**12
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+
+def test_fall_times_events_and_telemetry_share_the_session_clock_when_ticks_are_skipped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 16 defect 3: a fall event's onset and detection, its session time and the telemetry's session
+    time are one clock; skipped ticks are flagged per sample."""
+    clock = SteppedClock()
+    monkeypatch.setattr("server.realtime.pipeline.time.perf_counter_ns", clock)
+    twin = default_twin()
+    config = SupervisorConfig()
+    hal = make_hal("kinematic", twin, 1.0 / RATE_HZ, communication_timeout_s=1e6)
+    hal.configure()
+    hal.home()
+    events: list[tuple[str, dict[str, Any], int]] = []
+    pipeline = TickPipeline(
+        twin, hal, RATE_HZ, config, lambda kind, details, _: events.append((kind, details, clock.now_ns))
+    )
+    # A hair-trigger unloading detector, so that a fall is reported while the cue plays.
+    patient = {"body_mass_kg": 70.0, "height_m": 1.75, "fall_detectors": {"unload": {"threshold_fraction_bw": 0.499}}}
+    plan = plan_prescription(
+        {"segments": [{"cue": SINE_X, "duration_s": 20.0}]},
+        twin,
+        control_rate_hz=RATE_HZ,
+        config=config,
+        patient=patient,
+    )
+    pipeline.load(plan)
+    pipeline.heartbeat()
+    start_ns = clock.now_ns
+    pipeline.start()
+    period_ns = round(1e9 / RATE_HZ)
+    session_times, skipped = [], []
+    for tick in range(30 * RATE_HZ):
+        late = tick % 3 == 2  # every third deadline is missed: a third of the ticks never run
+        clock.now_ns += period_ns * (2 if late else 1)
+        pipeline.heartbeat()
+        pipeline.tick(period_ns if late else 0)
+        session_times.append(float(pipeline.record["session_time_s"][0]))
+        skipped.append(int(pipeline.record["skipped_ticks"][0]))
+        if any(kind == "fall" for kind, _, _ in events):
+            break
+    falls = [(details, at_ns) for kind, details, at_ns in events if kind == "fall"]
+    assert falls, "the hair-trigger detector never fired"
+    details, at_ns = falls[0]
+    true_session_s = (at_ns - start_ns) * 1e-9
+    assert details["detected_s"] == pytest.approx(true_session_s, abs=1e-9)
+    assert details["session_time_s"] == pytest.approx(true_session_s, abs=1e-6)
+    assert details["onset_s"] <= details["detected_s"] < details["onset_s"] + 1.0
+    assert session_times[-1] == pytest.approx(true_session_s, abs=1e-9)
+    assert skipped[2::3] == [1] * len(skipped[2::3]) and set(skipped[0::3]) == {0}
+    hal.shutdown()
