@@ -517,7 +517,11 @@ class TickPipeline:
         monitor = self.fall_monitor
         if monitor is not None and self.supervisor.state in (SupervisorState.RUNNING, SupervisorState.PAUSED):
             events = monitor.step(
-                self.session_time_s, reading.plate_force_z_n, reading.plate_cop_m, reading.harness_load_n
+                self.session_time_s,
+                reading.plate_force_z_n,
+                reading.plate_cop_m,
+                reading.harness_load_n,
+                self.acceleration[2],  # the commanded heave: the plates' load swing it makes is no body drop
             )
             for event in events:
                 self._emit(
