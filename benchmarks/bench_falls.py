@@ -102,7 +102,7 @@ def normal_sessions(count: int, duration_s: float) -> dict[str, Any]:
 
     twin, config, rate_hz = default_twin(), SupervisorConfig(), round(1.0 / PERIOD_S)
     rng = np.random.default_rng(2026)
-    outcomes: dict[str, int] = {}
+    outcomes: dict[str, dict[str, int]] = {"healthy": {}, "impaired": {}}
     ended_as_fall = []
     for index in range(count):
         params = random_patient(rng, impaired_share=0.5)
@@ -130,10 +130,19 @@ def normal_sessions(count: int, duration_s: float) -> dict[str, Any]:
                 break
         hal.shutdown()
         reason = pipeline.supervisor.stop_reason.name.lower()
-        outcomes[reason] = outcomes.get(reason, 0) + 1
+        by_preset = outcomes[params.preset_name]
+        by_preset[reason] = by_preset.get(reason, 0) + 1
         if pipeline.supervisor.stop_reason is StopReason.FALL:
-            ended_as_fall.append({**patient, "cue": cue})
-    return {"sessions": count, "duration_s": duration_s, "outcomes": outcomes, "ended_as_fall": ended_as_fall}
+            # Did the simulated patient really lose balance (ground truth), or was it a false alarm?
+            truth = hal._patient is not None and hal._patient.fallen
+            ended_as_fall.append({**patient, "cue": cue, "patient_lost_balance": bool(truth)})
+    return {
+        "sessions": count,
+        "duration_s": duration_s,
+        "outcomes_by_preset": outcomes,
+        "ended_as_fall": ended_as_fall,
+        "false_alarm_endings": sum(not entry["patient_lost_balance"] for entry in ended_as_fall),
+    }
 
 
 def detection(*, quick: bool) -> dict[str, Any]:
