@@ -113,6 +113,21 @@ class PatientParameters:
     harness_slack_m: float = 0.05
     harness_stiffness_n_m: float = 10_000.0
     harness_damping_n_s_m: float = 1000.0  # a shock-absorbing lanyard
+    # The support's sensed acceleration drives a share of the torque that cancels its inertial push m·h·a
+    # (the automatic postural response; feedback alone resonates near 0.3-0.5 Hz, where training cues sit).
+    # Training cues are predictable, so the feedforward is predictive (no delay; Dietz et al. 1993, Exp
+    # Brain Res 93:352, on stance on a sinusoidally translating platform).
+    acceleration_feedforward_gain: float = 1.0
+    acceleration_feedforward_delay_s: float = 0.0
+    hip_torque_max_n_m_per_kg: float = 0.5  # the hip strategy's moment (Horak & Nashner 1986); size ours
+    # Once the extrapolated COM leaves the feet: a step, a grab of the rail, or neither (the harness
+    # catches); the shares and times are ours, after Maki & McIlroy (1997).
+    step_probability: float = 0.6
+    grab_probability: float = 0.3
+    protective_reaction_s: float = 0.25
+    step_swing_s: float = 0.35
+    grab_load_fraction_bw: float = 0.3
+    leg_buckle_fraction: float = 0.6
     plate_force_noise_n: float = 2.0
     plate_cop_noise_m: float = 0.001
     harness_load_noise_n: float = 2.0
@@ -149,6 +164,15 @@ class PatientParameters:
         require_in_range("harness_slack_m", self.harness_slack_m, 0.0, 1.0)
         require_in_range("harness_stiffness_n_m", self.harness_stiffness_n_m, 100.0, 1e6)
         require_in_range("harness_damping_n_s_m", self.harness_damping_n_s_m, 0.0, 1e5)
+        require_in_range("acceleration_feedforward_gain", self.acceleration_feedforward_gain, 0.0, 1.5)
+        require_in_range("acceleration_feedforward_delay_s", self.acceleration_feedforward_delay_s, 0.0, 0.5)
+        require_in_range("hip_torque_max_n_m_per_kg", self.hip_torque_max_n_m_per_kg, 0.0, 5.0)
+        require_in_range("step_probability", self.step_probability, 0.0, 1.0)
+        require_in_range("grab_probability", self.grab_probability, 0.0, 1.0 - self.step_probability)
+        require_in_range("protective_reaction_s", self.protective_reaction_s, 0.0, 2.0)
+        require_in_range("step_swing_s", self.step_swing_s, 0.05, 2.0)
+        require_in_range("grab_load_fraction_bw", self.grab_load_fraction_bw, 0.0, 1.0)
+        require_in_range("leg_buckle_fraction", self.leg_buckle_fraction, 0.0, 1.0)
         require_in_range("plate_force_noise_n", self.plate_force_noise_n, 0.0, 100.0)
         require_in_range("plate_cop_noise_m", self.plate_cop_noise_m, 0.0, 0.05)
         require_in_range("harness_load_noise_n", self.harness_load_noise_n, 0.0, 100.0)
@@ -210,6 +234,11 @@ PRESETS: dict[str, dict[str, float]] = {
         "sensory_noise_rad": 0.003,
         "motor_noise_per_mgh": 0.006,
         "ankle_torque_max_n_m_per_kg": 1.2,
+        "acceleration_feedforward_gain": 0.7,
+        "hip_torque_max_n_m_per_kg": 0.25,
+        "step_probability": 0.3,
+        "grab_probability": 0.3,
+        "protective_reaction_s": 0.35,
     },
 }
 
@@ -247,8 +276,21 @@ PRESETS: dict[str, dict[str, float]] = {
     P_DT,
     P_SUBSTEPS,
     P_LEAK_RATE,
+    P_FF_GAIN,
+    P_FF_STEPS,
+    P_FB_STEPS,
+    P_OMEGA0,
+    P_STEP_P,
+    P_GRAB_P,
+    P_REACTION,
+    P_SWING,
+    P_GRAB_LOAD,
+    P_BUCKLE,
+    P_RESCUE_K,
+    P_RESCUE_C,
+    P_HIP_MAX,
     P_SIZE,
-) = range(30)
+) = range(43)
 
 # state vector
 (
@@ -272,8 +314,25 @@ PRESETS: dict[str, dict[str, float]] = {
     S_FALLEN,
     S_FALL_ONSET,
     S_DELAY_INDEX,
+    S_FF_INDEX,
+    S_RESPONSE,  # RESPONSE_* once balance is lost
+    S_RESPONSE_TIME,  # since the loss of balance
+    S_STEP_FOOT,  # 0 right, 1 left
+    S_DROP,  # vertical sag of the body (m, down positive) when the legs give way
+    S_DROP_RATE,
     S_SIZE,
-) = range(21)
+) = range(27)
+
+# What the patient does once the extrapolated COM has left the base of support.
+RESPONSE_NONE, RESPONSE_STEP, RESPONSE_GRAB, RESPONSE_CATCH = 0, 1, 2, 3
+RESPONSE_NAMES = {RESPONSE_STEP: "step", RESPONSE_GRAB: "grab", RESPONSE_CATCH: "harness_catch"}
+LIFT_OFF_S = 0.05  # a stepping foot unloads over this long
+GRAB_RAMP_S = 0.2  # the hand takes up its share of the weight over this long
+BUCKLE_RAMP_S = 0.3  # the legs give way over this long
+MAX_DROP_M = 0.35  # knees fully flexed: the sag ends here
+RESCUE_STIFFNESS_PER_MGH = 4.0  # a planted step or a held rail stops the toppling
+RESCUE_DAMPING_PER_MGH_S = 1.0
+FUNCTIONAL_BASE_FRACTION = 0.8  # of the ankle-to-heel and ankle-to-toe distances: where the hips take over
 
 # output vector
 (
@@ -289,8 +348,10 @@ PRESETS: dict[str, dict[str, float]] = {
     O_FALLEN,
     O_FALL_ONSET,
     O_TIME,
+    O_RESPONSE,
+    O_DROP,
     O_SIZE,
-) = range(13)
+) = range(15)
 
 
 @numba.njit(cache=True)
@@ -321,7 +382,7 @@ def _rope_tension(p: np.ndarray, s: np.ndarray, rope: np.ndarray) -> float:
     # The anchor is fixed in the room; the feet move with the support (displacement s[S_SUPPORT_*]).
     attach_x = height * sin_ap + s[S_SUPPORT_X]
     attach_y = height * sin_ml + s[S_SUPPORT_Y]
-    attach_z = height * cos_ap * cos_ml + s[S_SUPPORT_Z]
+    attach_z = height * cos_ap * cos_ml + s[S_SUPPORT_Z] - s[S_DROP]
     to_anchor_x = -attach_x
     to_anchor_y = -attach_y
     to_anchor_z = height + p[P_ANCHOR_HEIGHT] - attach_z
@@ -334,7 +395,9 @@ def _rope_tension(p: np.ndarray, s: np.ndarray, rope: np.ndarray) -> float:
         return 0.0
     velocity_x = height * cos_ap * s[S_OMEGA_AP] + s[S_SUPPORT_VX]
     velocity_y = height * cos_ml * s[S_OMEGA_ML] + s[S_SUPPORT_VY]
-    velocity_z = -height * (sin_ap * cos_ml * s[S_OMEGA_AP] + cos_ap * sin_ml * s[S_OMEGA_ML]) + s[S_SUPPORT_VZ]
+    velocity_z = (
+        -height * (sin_ap * cos_ml * s[S_OMEGA_AP] + cos_ap * sin_ml * s[S_OMEGA_ML]) + s[S_SUPPORT_VZ] - s[S_DROP_RATE]
+    )
     lengthening_rate = -(rope[0] * velocity_x + rope[1] * velocity_y + rope[2] * velocity_z)
     return max(0.0, p[P_ROPE_K] * stretch + p[P_ROPE_C] * lengthening_rate)  # a rope only pulls
 
@@ -363,11 +426,13 @@ def _patient_step(
     support_ap, support_ml = tilt[1], -tilt[0]
     support_rate_ap, support_rate_ml = angular_velocity[1], -angular_velocity[0]
     half_width, half_breadth = p[P_HALF_WIDTH], p[P_HALF_BREADTH]
-    delay_length = delay.shape[0]
+    lateral_reach = half_width + half_breadth
+    feedback_length, feedforward_length = int(p[P_FB_STEPS]), int(p[P_FF_STEPS])
     total_force = 0.0
-    torque_ap = 0.0
+    plate_torque_ap = 0.0
     torque_ml = 0.0
     tension = 0.0
+    right_force = left_force = 0.0
     for _ in range(int(p[P_SUBSTEPS])):
         # Support displacement relative to the room, by a leaky double integration (drift-free).
         leak = p[P_LEAK_RATE]
@@ -395,16 +460,23 @@ def _patient_step(
         sensed_ml = weight * relative_ml + (1.0 - weight) * theta_ml + s[S_SENSORY_NOISE_ML]
         sensed_rate_ml = weight * relative_rate_ml + (1.0 - weight) * omega_ml
 
-        # Transport delay: read the oldest sample, then overwrite it with the newest.
+        # Transport delays: read the oldest sample, then overwrite it with the newest.
         index = int(s[S_DELAY_INDEX])
         delayed_ap, delayed_rate_ap = delay[index, 0], delay[index, 1]
         delayed_ml, delayed_rate_ml = delay[index, 2], delay[index, 3]
         delay[index, 0], delay[index, 1] = sensed_ap, sensed_rate_ap
         delay[index, 2], delay[index, 3] = sensed_ml, sensed_rate_ml
-        s[S_DELAY_INDEX] = (index + 1) % delay_length
+        s[S_DELAY_INDEX] = (index + 1) % feedback_length
+        index = int(s[S_FF_INDEX])
+        sensed_support_ax, sensed_support_ay = delay[index, 4], delay[index, 5]
+        delay[index, 4], delay[index, 5] = acceleration[0], acceleration[1]
+        s[S_FF_INDEX] = (index + 1) % feedforward_length
 
-        active_ap = p[P_KP] * delayed_ap + p[P_KD] * delayed_rate_ap
-        active_ml = p[P_KP] * delayed_ml + p[P_KD] * delayed_rate_ml
+        # Delayed PD on the sensed angle, plus the feedforward that cancels a share of the support's
+        # inertial torque m·h·a (the automatic postural response to a sensed support acceleration).
+        inertial_gain = p[P_FF_GAIN] * mass * height
+        active_ap = p[P_KP] * delayed_ap + p[P_KD] * delayed_rate_ap - inertial_gain * sensed_support_ax
+        active_ml = p[P_KP] * delayed_ml + p[P_KD] * delayed_rate_ml - inertial_gain * sensed_support_ay
         torque_max = p[P_TORQUE_MAX]
         torque_ap = _clamp(active_ap, -torque_max, torque_max)
         torque_ml = _clamp(active_ml, -torque_max, torque_max)
@@ -422,16 +494,69 @@ def _patient_step(
             - 2.0 * omega_ap * omega_ml * sin_ap * sin_ml
         )
         effective_gravity = GRAVITY_M_S2 + acceleration[2]
-        total_force = (
-            mass * (effective_gravity + com_vertical_acceleration)
-            + p[P_FEET_MASS] * effective_gravity
-            - tension * rope[2]
+        body_force = mass * (effective_gravity + com_vertical_acceleration) - tension * rope[2]
+
+        # Once balance is lost (see below) the patient reacts after a reaction time: a step, a grab of
+        # the rail, or nothing, when the legs give way and the harness catches the body.
+        response = int(s[S_RESPONSE])
+        reacting = 0.0
+        if response != RESPONSE_NONE:
+            s[S_RESPONSE_TIME] += dt
+            reacting = s[S_RESPONSE_TIME] - p[P_REACTION]
+        rescue_share = 0.0  # how much of the rescue torque (planted foot, held rail) acts
+        plate_share = 1.0  # the share of the body's load that stays on the plates
+        stepping_foot_share = 1.0  # the stepping foot's own share of its normal load
+        if response == RESPONSE_STEP and reacting > 0.0:
+            stepping_foot_share = max(0.0, 1.0 - reacting / LIFT_OFF_S)
+            if reacting > LIFT_OFF_S + p[P_SWING]:  # landed beside the plate: half the weight is off it
+                rescue_share, plate_share = 1.0, 0.5
+        elif response == RESPONSE_GRAB and reacting > 0.0:
+            rescue_share = min(1.0, reacting / GRAB_RAMP_S)
+        elif response == RESPONSE_CATCH and reacting > 0.0:
+            plate_share = 1.0 - p[P_BUCKLE] * min(1.0, reacting / BUCKLE_RAMP_S)
+        if response == RESPONSE_CATCH and reacting > 0.0 and s[S_DROP] < MAX_DROP_M:
+            # The legs carry only part of the load: the body sags until the rope takes the rest.
+            drop_acceleration = (1.0 - plate_share) * effective_gravity - tension * rope[2] / mass
+            s[S_DROP_RATE] = max(s[S_DROP_RATE] + drop_acceleration * dt, 0.0)
+            s[S_DROP] = min(s[S_DROP] + s[S_DROP_RATE] * dt, MAX_DROP_M)
+            total_force = max(mass * effective_gravity * plate_share, 0.0) + p[P_FEET_MASS] * effective_gravity
+        else:
+            if response == RESPONSE_CATCH:
+                s[S_DROP_RATE] = 0.0  # fully sagged: the legs and the rope hold the body
+                plate_share = 1.0
+            total_force = max(body_force * plate_share, 0.0) + p[P_FEET_MASS] * effective_gravity
+        if response == RESPONSE_GRAB:
+            total_force = max(total_force - rescue_share * p[P_GRAB_LOAD] * mass * GRAVITY_M_S2, 0.0)
+
+        # The ankles keep the COP within a functional part of the foot and the hips (trunk counter-rotation,
+        # a moment that passes through no plate) take the excess; only once the hips are saturated does the
+        # COP go to the edge of the foot, which it cannot leave.
+        demanded_ap = torque_ap
+        torque_ap = _clamp(
+            demanded_ap,
+            -total_force * FUNCTIONAL_BASE_FRACTION * p[P_HEEL],
+            total_force * FUNCTIONAL_BASE_FRACTION * p[P_TOE],
         )
-        total_force = max(total_force, 0.0)
-        # The centre of pressure cannot leave the feet: the torque saturates there.
-        torque_ap = _clamp(torque_ap, -total_force * p[P_HEEL], total_force * p[P_TOE])
-        lateral_reach = half_width + half_breadth
+        hip_ap = _clamp(demanded_ap - torque_ap, -p[P_HIP_MAX], p[P_HIP_MAX])
+        torque_ap = _clamp(demanded_ap - hip_ap, -total_force * p[P_HEEL], total_force * p[P_TOE])
         torque_ml = _clamp(torque_ml, -total_force * lateral_reach, total_force * lateral_reach)
+        plate_torque_ap = torque_ap
+        torque_ap += hip_ap
+        # A planted step or a held rail adds its own moment, through neither plate.
+        rescue_ap = rescue_share * (p[P_RESCUE_K] * theta_ap + p[P_RESCUE_C] * omega_ap)
+        rescue_ml = rescue_share * (p[P_RESCUE_K] * theta_ml + p[P_RESCUE_C] * omega_ml)
+
+        # Plate loads: within the stance the ML moment is made by sharing load between the feet.
+        net_cop_ml = torque_ml / total_force if total_force > 1e-9 else 0.0
+        left_share = _clamp(0.5 + net_cop_ml / (2.0 * half_width), 0.0, 1.0)
+        right_force, left_force = total_force * (1.0 - left_share), total_force * left_share
+        if response == RESPONSE_STEP:
+            if s[S_STEP_FOOT] == 0.0:
+                right_force *= stepping_foot_share
+                left_force = total_force - right_force
+            else:
+                left_force *= stepping_foot_share
+                right_force = total_force - left_force
 
         attach = p[P_ATTACH_HEIGHT]
         lever_x, lever_y, lever_z = attach * sin_ap, attach * sin_ml, attach * cos_ap * cos_ml
@@ -440,10 +565,16 @@ def _patient_step(
         harness_moment_ml = lever_z * force_y - lever_y * force_z
 
         accel_ap = (
-            mass * height * (effective_gravity * sin_ap - acceleration[0] * cos_ap) - torque_ap + harness_moment_ap
+            mass * height * (effective_gravity * sin_ap - acceleration[0] * cos_ap)
+            - torque_ap
+            - rescue_ap
+            + harness_moment_ap
         ) / inertia
         accel_ml = (
-            mass * height * (effective_gravity * sin_ml - acceleration[1] * cos_ml) - torque_ml + harness_moment_ml
+            mass * height * (effective_gravity * sin_ml - acceleration[1] * cos_ml)
+            - torque_ml
+            - rescue_ml
+            + harness_moment_ml
         ) / inertia
         s[S_ACCEL_AP], s[S_ACCEL_ML] = accel_ap, accel_ml
         # Semi-implicit Euler: velocity first, then angle with the new velocity (energy-stable).
@@ -457,15 +588,27 @@ def _patient_step(
                 s[rate] = 0.0
         s[S_TIME] += dt
 
-        com_ap = height * math.sin(s[S_THETA_AP])
-        com_ml = height * math.sin(s[S_THETA_ML])
-        outside = com_ap > p[P_TOE] or com_ap < -p[P_HEEL] or abs(com_ml) > lateral_reach
-        # Leaning far enough to take up the harness slack is being caught: a fall as well.
-        if (outside or tension > 0.0) and s[S_FALLEN] == 0.0:
-            s[S_FALLEN] = 1.0
-            s[S_FALL_ONSET] = s[S_TIME]
+        # Balance is lost once the extrapolated COM (Hof et al. 2005: x + v/ω0, ω0 = √(g/h)) leaves the
+        # base of support: no centre of pressure inside the feet can bring the body back. Leaning far
+        # enough to take up the harness slack is being caught: a fall as well.
+        if s[S_FALLEN] == 0.0:
+            com_ap, com_ml = height * math.sin(s[S_THETA_AP]), height * math.sin(s[S_THETA_ML])
+            xcom_ap = com_ap + height * math.cos(s[S_THETA_AP]) * s[S_OMEGA_AP] / p[P_OMEGA0]
+            xcom_ml = com_ml + height * math.cos(s[S_THETA_ML]) * s[S_OMEGA_ML] / p[P_OMEGA0]
+            outside = xcom_ap > p[P_TOE] or xcom_ap < -p[P_HEEL] or abs(xcom_ml) > lateral_reach
+            if outside or tension > 0.0:
+                s[S_FALLEN] = 1.0
+                s[S_FALL_ONSET] = s[S_TIME]
+                choice = _next_uniform(rng_state)
+                if choice < p[P_STEP_P]:
+                    s[S_RESPONSE] = RESPONSE_STEP
+                elif choice < p[P_STEP_P] + p[P_GRAB_P]:
+                    s[S_RESPONSE] = RESPONSE_GRAB
+                else:
+                    s[S_RESPONSE] = RESPONSE_CATCH
+                s[S_STEP_FOOT] = 0.0 if left_share >= 0.5 else 1.0  # the unloaded foot steps
 
-    _write_readings(p, s, rng_state, total_force, torque_ap, torque_ml, tension, out)
+    _write_readings(p, s, rng_state, right_force, left_force, plate_torque_ap, torque_ml, tension, out)
 
 
 @numba.njit(cache=True)
@@ -473,36 +616,41 @@ def _write_readings(
     p: np.ndarray,
     s: np.ndarray,
     rng_state: np.ndarray,
-    total_force: float,
+    right_force: float,
+    left_force: float,
     torque_ap: float,
     torque_ml: float,
     tension: float,
     out: np.ndarray,
 ) -> None:
-    """Plate forces and COPs from the ankle torques; the load moves between the feet with ML sway."""
-    half_width = p[P_HALF_WIDTH]
+    """Plate forces and COPs. A sensor's noise cannot put the COP outside the sole that makes it."""
+    half_width, half_breadth = p[P_HALF_WIDTH], p[P_HALF_BREADTH]
+    heel, toe = p[P_HEEL], p[P_TOE]
+    total_force = right_force + left_force
     cop_ap = 0.0
     net_cop_ml = 0.0
     if total_force > 1e-9:
         cop_ap = torque_ap / total_force
         net_cop_ml = torque_ml / total_force
-    # Within the stance the ML moment is made by sharing load; beyond it one foot carries all and its
-    # own COP moves toward its outer edge.
-    left_share = _clamp(0.5 + net_cop_ml / (2.0 * half_width), 0.0, 1.0)
+    # Beyond the stance width one foot carries all and its own COP moves toward its outer edge.
     right_cop_ml = min(net_cop_ml + half_width, 0.0)
     left_cop_ml = max(net_cop_ml - half_width, 0.0)
-    out[O_FZ_RIGHT] = total_force * (1.0 - left_share) + p[P_FORCE_NOISE] * _next_gaussian(rng_state)
-    out[O_FZ_LEFT] = total_force * left_share + p[P_FORCE_NOISE] * _next_gaussian(rng_state)
-    out[O_COP_RIGHT_X] = cop_ap + p[P_COP_NOISE] * _next_gaussian(rng_state)
-    out[O_COP_RIGHT_Y] = right_cop_ml + p[P_COP_NOISE] * _next_gaussian(rng_state)
-    out[O_COP_LEFT_X] = cop_ap + p[P_COP_NOISE] * _next_gaussian(rng_state)
-    out[O_COP_LEFT_Y] = left_cop_ml + p[P_COP_NOISE] * _next_gaussian(rng_state)
+    if s[S_RESPONSE] == RESPONSE_STEP:
+        right_cop_ml = left_cop_ml = 0.0  # one foot stands alone
+    out[O_FZ_RIGHT] = right_force + p[P_FORCE_NOISE] * _next_gaussian(rng_state)
+    out[O_FZ_LEFT] = left_force + p[P_FORCE_NOISE] * _next_gaussian(rng_state)
+    out[O_COP_RIGHT_X] = _clamp(cop_ap + p[P_COP_NOISE] * _next_gaussian(rng_state), -heel, toe)
+    out[O_COP_RIGHT_Y] = _clamp(right_cop_ml + p[P_COP_NOISE] * _next_gaussian(rng_state), -half_breadth, half_breadth)
+    out[O_COP_LEFT_X] = _clamp(cop_ap + p[P_COP_NOISE] * _next_gaussian(rng_state), -heel, toe)
+    out[O_COP_LEFT_Y] = _clamp(left_cop_ml + p[P_COP_NOISE] * _next_gaussian(rng_state), -half_breadth, half_breadth)
     out[O_HARNESS] = tension + p[P_HARNESS_NOISE] * _next_gaussian(rng_state)
     out[O_SWAY_AP] = s[S_THETA_AP]
     out[O_SWAY_ML] = s[S_THETA_ML]
     out[O_FALLEN] = s[S_FALLEN]
     out[O_FALL_ONSET] = s[S_FALL_ONSET]
     out[O_TIME] = s[S_TIME]
+    out[O_RESPONSE] = s[S_RESPONSE]
+    out[O_DROP] = s[S_DROP]
 
 
 @numba.njit(cache=True)
@@ -566,7 +714,27 @@ def _parameter_vector(params: PatientParameters, sample_period_s: float) -> np.n
     vector[P_DT] = sample_period_s
     vector[P_SUBSTEPS] = substeps
     vector[P_LEAK_RATE] = 1.0 / SUPPORT_LEAK_TIME_CONSTANT_S
+    vector[P_FF_GAIN] = params.acceleration_feedforward_gain
+    vector[P_FB_STEPS], vector[P_FF_STEPS] = _delay_steps(params, dt)
+    vector[P_OMEGA0] = math.sqrt(GRAVITY_M_S2 / params.com_height_above_ankle_m)
+    vector[P_STEP_P] = params.step_probability
+    vector[P_GRAB_P] = params.grab_probability
+    vector[P_REACTION] = params.protective_reaction_s
+    vector[P_SWING] = params.step_swing_s
+    vector[P_GRAB_LOAD] = params.grab_load_fraction_bw
+    vector[P_BUCKLE] = params.leg_buckle_fraction
+    vector[P_RESCUE_K] = RESCUE_STIFFNESS_PER_MGH * mgh
+    vector[P_RESCUE_C] = RESCUE_DAMPING_PER_MGH_S * mgh
+    vector[P_HIP_MAX] = params.hip_torque_max_n_m_per_kg * params.body_mass_kg
     return vector
+
+
+def _delay_steps(params: PatientParameters, internal_step_s: float) -> tuple[int, int]:
+    """Ring-buffer lengths of the feedback and the feedforward delays, in internal steps."""
+    return (
+        max(1, round(params.feedback_delay_s / internal_step_s)),
+        max(1, round(params.acceleration_feedforward_delay_s / internal_step_s)),
+    )
 
 
 # The harness anchor is fixed in the room, so the feet's displacement under it matters; it is the
@@ -578,10 +746,9 @@ SUPPORT_LEAK_TIME_CONSTANT_S = 30.0
 def _initial_state(params: PatientParameters, sample_period_s: float, seed: int) -> tuple[np.ndarray, ...]:
     substeps = _validate_sample_period(sample_period_s)
     internal_step_s = sample_period_s / substeps
-    delay_steps = max(1, round(params.feedback_delay_s / internal_step_s))
     state = np.zeros(S_SIZE)
     state[S_FALL_ONSET] = math.nan
-    delay = np.zeros((delay_steps, 4))
+    delay = np.zeros((max(_delay_steps(params, internal_step_s)), 6))  # sensed angles, then support accel
     rng_state = np.random.SeedSequence(seed).generate_state(1, np.uint64)
     return state, delay, rng_state
 
@@ -613,6 +780,11 @@ class PatientSample:
     @property
     def time_s(self) -> float:
         return float(self._out[O_TIME])
+
+    @property
+    def fall_response(self) -> str:
+        """What the patient did once balance was lost: "step", "grab", "harness_catch" (or "")."""
+        return RESPONSE_NAMES.get(int(self._out[O_RESPONSE]), "")
 
 
 class SimulatedPatient:
@@ -686,6 +858,8 @@ class PatientTrajectory:
     sway_angle_rad: np.ndarray  # (N, 2)
     fallen: np.ndarray  # (N,) bool
     fall_onset_s: float  # NaN if the patient stayed standing
+    fall_response: str = ""  # "step", "grab" or "harness_catch" once balance was lost
+    body_drop_m: np.ndarray | None = None  # (N,) the body's sag when the legs gave way (ground truth)
 
 
 def _as_motion(name: str, values: np.ndarray, width: int, count: int | None) -> np.ndarray:
@@ -723,6 +897,8 @@ def simulate(
         sway_angle_rad=outputs[:, O_SWAY_AP : O_SWAY_ML + 1].copy(),
         fallen=outputs[:, O_FALLEN] > 0.5,
         fall_onset_s=float(state[S_FALL_ONSET]),
+        fall_response=RESPONSE_NAMES.get(int(state[S_RESPONSE]), ""),
+        body_drop_m=outputs[:, O_DROP].copy(),
     )
 
 

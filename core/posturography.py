@@ -1,7 +1,8 @@
 """Posturography metrics for one trial (issue 8; REFERENCE.md §5).
 
-COP sway measures after Prieto et al. (1996), IEEE Trans Biomed Eng 43:956: path length, mean
-velocity, RMS distance from the mean COP, AP/ML range, and the 95 % ellipse area
+COP sway measures after Prieto et al. (1996), IEEE Trans Biomed Eng 43:956: path length (Prieto's total
+excursions), mean velocity (total excursions over the trial time), mean and RMS distance from the mean COP,
+AP/ML range, and the 95 % ellipse area
 π·χ²₀.₉₅(2)·√(λ₁λ₂) = π·5.991·√(λ₁λ₂) from the eigenvalues of the COP covariance. That is the
 *prediction* ellipse (expected to hold 95 % of the COP samples), not the confidence ellipse of the
 mean COP (Schubert & Kirchner 2014, Gait Posture 39:518).
@@ -26,6 +27,11 @@ CHI2_2DOF_95 = 5.991  # χ² quantile, 2 degrees of freedom, p = 0.95
 SWAY_LIMIT_RAD = math.radians(12.5)
 NEUROCOM_COG_HEIGHT_FRACTION = 0.5527  # COG height above the ankle used by NeuroCom, fraction of height
 SOT_CONDITIONS = (1, 2, 3, 4, 5, 6)
+# Path length and velocity measure noise as much as sway on raw 1 kHz plate COP: 1 mm of white sensor noise
+# alone adds about 1 m/s. Prieto et al. (1996) low-pass filtered the COP at 5 Hz (4th-order Butterworth,
+# zero phase) before computing their measures; `filtered_sway_metrics` does the same.
+COP_LOWPASS_CUTOFF_HZ = 5.0
+COP_LOWPASS_ORDER = 4
 
 
 @dataclass(frozen=True)
@@ -35,6 +41,7 @@ class SwayMetrics:
     duration_s: float
     path_length_m: float
     mean_velocity_m_s: float
+    mean_distance_m: float
     rms_distance_m: float
     rms_ap_m: float
     rms_ml_m: float
@@ -71,6 +78,7 @@ def sway_metrics(time_s: np.ndarray, cop_m: np.ndarray) -> SwayMetrics:
         duration_s=duration_s,
         path_length_m=path_length_m,
         mean_velocity_m_s=path_length_m / duration_s,
+        mean_distance_m=float(np.mean(np.linalg.norm(centred, axis=1))),
         rms_distance_m=float(np.sqrt(np.mean(np.sum(centred**2, axis=1)))),
         rms_ap_m=float(np.sqrt(np.mean(centred[:, 0] ** 2))),
         rms_ml_m=float(np.sqrt(np.mean(centred[:, 1] ** 2))),
@@ -78,6 +86,32 @@ def sway_metrics(time_s: np.ndarray, cop_m: np.ndarray) -> SwayMetrics:
         range_ml_m=float(np.ptp(cop_m[:, 1])),
         ellipse_area_95_m2=float(math.pi * CHI2_2DOF_95 * math.sqrt(max(eigenvalues[0], 0.0) * eigenvalues[1])),
     )
+
+
+def lowpass_cop(
+    time_s: np.ndarray, cop_m: np.ndarray, cutoff_hz: float = COP_LOWPASS_CUTOFF_HZ
+) -> tuple[np.ndarray, np.ndarray]:
+    """The COP resampled onto a uniform grid at the median sample interval (a late tick or a lost sample must
+    not bend the filter) and low-pass filtered, zero phase (4th-order Butterworth, scipy's sosfiltfilt)."""
+    from scipy.signal import butter, sosfiltfilt
+
+    time_s, cop_m = _as_trace(time_s, cop_m)
+    period_s = float(np.median(np.diff(time_s)))
+    nyquist_hz = 0.5 / period_s
+    require_in_range("cutoff_hz", cutoff_hz, 0.0, nyquist_hz, low_open=True, high_open=True)
+    uniform_s = time_s[0] + period_s * np.arange(round((time_s[-1] - time_s[0]) / period_s) + 1)
+    resampled = np.column_stack([np.interp(uniform_s, time_s, cop_m[:, axis]) for axis in range(2)])
+    sos = butter(COP_LOWPASS_ORDER, cutoff_hz / nyquist_hz, output="sos")
+    if len(uniform_s) <= 3 * (2 * len(sos) + 1):  # too short for filtfilt's padding: nothing to filter
+        return uniform_s, resampled
+    return uniform_s, sosfiltfilt(sos, resampled, axis=0)
+
+
+def filtered_sway_metrics(
+    time_s: np.ndarray, cop_m: np.ndarray, cutoff_hz: float = COP_LOWPASS_CUTOFF_HZ
+) -> SwayMetrics:
+    """Prieto's measures on the low-pass-filtered COP (see `lowpass_cop`)."""
+    return sway_metrics(*lowpass_cop(time_s, cop_m, cutoff_hz))
 
 
 def net_cop(plate_force_z_n: np.ndarray, plate_cop_m: np.ndarray, foot_origins_m: np.ndarray) -> np.ndarray:

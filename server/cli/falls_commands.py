@@ -18,12 +18,17 @@ import typer
 from core.falls import (
     ANY_DETECTOR,
     DETECTOR_NAMES,
+    ROC_PARAMETERS,
+    TUNING_GRID,
     FallDetectorConfig,
     FallEvent,
+    LabelledLog,
     MatchingWindow,
     SessionDetections,
     detect_falls,
+    roc_curve,
     score_detector,
+    tune_fused,
 )
 from core.patient import (
     FootGeometry,
@@ -86,6 +91,12 @@ def read_session_log(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]
     return columns, metadata
 
 
+def support_acceleration_z(columns: dict[str, np.ndarray]) -> np.ndarray | None:
+    """The support's vertical acceleration (m/s², gravity excluded), when the log has it."""
+    acceleration = columns.get("support_acceleration_m_s2")
+    return None if acceleration is None else np.ascontiguousarray(acceleration[:, 2], dtype=float)
+
+
 def _log_paths(logs: list[Path]) -> list[Path]:
     paths: list[Path] = []
     for entry in logs:
@@ -146,8 +157,11 @@ def simulate_session(
             "foot_half_breadth_m": foot.half_breadth_m,
         },
         "perturbations": [p.to_dict() for p in perturbations],
-        "falls": [{"onset_s": trajectory.fall_onset_s}] if fell else [],
-        "fall_definition": "the COM's ground projection left the base of support",
+        "falls": [{"onset_s": trajectory.fall_onset_s, "response": trajectory.fall_response}] if fell else [],
+        "fall_definition": (
+            "balance lost: the extrapolated COM left the base of support (then a step, a grab or a harness "
+            "catch), or the harness took up its slack"
+        ),
     }
     return columns, metadata
 
@@ -180,40 +194,105 @@ def _detector_config(
     height_m = patient.get("height_m")
     base = FallDetectorConfig.for_patient(mass, height_m) if height_m else FallDetectorConfig(body_mass_kg=mass)
     data = base.to_dict()
+    for section in ("harness", "cop", "unload", "fused"):  # evaluation scores every detector
+        data[section]["enabled"] = True
     for section, values in overrides.items():
         data[section] = {**data.get(section, {}), **values}
     return FallDetectorConfig.from_dict(data)
 
 
-def evaluate_logs(
+def labelled_logs(
     paths: list[Path],
     truth: dict[str, list[float]] | None,
     overrides: dict[str, Any],
     body_mass_kg: float | None,
     advance: Any,
-) -> tuple[list[SessionDetections], dict[str, tuple[dict[str, np.ndarray], dict[str, Any]]]]:
-    sessions = []
-    logs = {}
+) -> tuple[list[LabelledLog], dict[str, tuple[dict[str, np.ndarray], dict[str, Any]]]]:
+    """Each log's detector inputs, configuration and labelled onsets (and the raw columns, for plots)."""
+    labelled, logs = [], {}
     for path in paths:
         columns, metadata = read_session_log(path)
         name = metadata.get("session", path.stem)
-        time_s = columns["time_s"].astype(float)
-        sample_period_s = float(metadata.get("sample_period_s", np.median(np.diff(time_s))))
-        config = _detector_config(metadata, overrides, body_mass_kg)
-        events = detect_falls(
-            config,
-            sample_period_s,
-            time_s,
-            columns["plate_force_z_n"].astype(float),
-            columns["plate_cop_m"].astype(float),
-            columns["harness_load_n"].astype(float),
-        )
-        onsets = truth.get(name, []) if truth is not None else [f["onset_s"] for f in metadata.get("falls", [])]
-        duration_s = float(time_s[-1] - time_s[0] + sample_period_s)
-        sessions.append(SessionDetections(name, duration_s, tuple(onsets), tuple(events)))
+        onsets = truth.get(name, []) if truth is not None else None
+        labelled.append(labelled_log(name, columns, metadata, overrides, body_mass_kg, onsets))
         logs[name] = (columns, metadata)
         advance(1)
-    return sessions, logs
+    return labelled, logs
+
+
+def labelled_log(
+    name: str,
+    columns: dict[str, np.ndarray],
+    metadata: dict[str, Any],
+    overrides: dict[str, Any] | None = None,
+    body_mass_kg: float | None = None,
+    onsets: list[float] | None = None,
+) -> LabelledLog:
+    """One log as the evaluation takes it; the onsets default to the sidecar's labelled falls."""
+    time_s = columns["time_s"].astype(float)
+    if onsets is None:
+        onsets = [fall["onset_s"] for fall in metadata.get("falls", [])]
+    return LabelledLog(
+        name=name,
+        config=_detector_config(metadata, overrides or {}, body_mass_kg),
+        sample_period_s=float(metadata.get("sample_period_s", np.median(np.diff(time_s)))),
+        time_s=time_s,
+        plate_force_z_n=columns["plate_force_z_n"].astype(float),
+        plate_cop_m=columns["plate_cop_m"].astype(float),
+        harness_load_n=columns["harness_load_n"].astype(float),
+        support_acceleration_z_m_s2=support_acceleration_z(columns),
+        fall_onsets_s=tuple(float(onset) for onset in onsets),
+    )
+
+
+def detections(logs: list[LabelledLog]) -> list[SessionDetections]:
+    """Every enabled detector's events on each log, at each log's configuration."""
+    return [
+        SessionDetections(
+            log.name,
+            log.duration_s,
+            log.fall_onsets_s,
+            tuple(
+                detect_falls(
+                    log.config,
+                    log.sample_period_s,
+                    log.time_s,
+                    log.plate_force_z_n,
+                    log.plate_cop_m,
+                    log.harness_load_n,
+                    log.support_acceleration_z_m_s2,
+                )
+            ),
+        )
+        for log in logs
+    ]
+
+
+def operating_threshold(config: FallDetectorConfig, detector: str) -> float:
+    section, parameter = ROC_PARAMETERS[detector]
+    return float(getattr(getattr(config, section), parameter))
+
+
+def roc_report(logs: list[LabelledLog], window: MatchingWindow, scores: list[Any]) -> dict[str, Any]:
+    """Per detector: the ROC points and the operating point (the configured threshold's score)."""
+    by_name = {score.detector: score for score in scores}
+    report = {}
+    for detector in ROC_PARAMETERS:
+        operating = by_name[detector]
+        report[detector] = {
+            "parameter": ".".join(ROC_PARAMETERS[detector]),
+            "points": [point.to_dict() for point in roc_curve(logs, detector, window=window)],
+            "operating_point": {
+                "threshold": operating_threshold(logs[0].config, detector),
+                "sensitivity": operating.sensitivity,
+                "false_alarms_per_hour": operating.false_alarms_per_hour,
+            },
+        }
+    return report
+
+
+def tuning_combinations() -> int:
+    return int(np.prod([len(values) for values in TUNING_GRID.values()]))
 
 
 def _print_scores(data: dict[str, Any]) -> None:
@@ -366,10 +445,11 @@ def register(app: typer.Typer) -> None:
             window = MatchingWindow(before_s=before_s, after_s=after_s)
             truth_onsets = _load_truth(truth) if truth is not None else None
             overrides = json.loads(detectors_file.read_text()) if detectors_file is not None else {}
-            with progress_bar("running detectors", len(paths), enabled=True) as advance:
-                sessions, loaded = evaluate_logs(paths, truth_onsets, overrides, body_mass_kg, advance)
+            with progress_bar("reading logs", len(paths), enabled=True) as advance:
+                labelled, loaded = labelled_logs(paths, truth_onsets, overrides, body_mass_kg, advance)
         except (ParameterError, OSError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
+        sessions = detections(labelled)
         scores = [score_detector(sessions, name, window) for name in (*DETECTOR_NAMES, ANY_DETECTOR)]
         data: dict[str, Any] = {
             "sessions": len(sessions),
@@ -377,11 +457,88 @@ def register(app: typer.Typer) -> None:
             "falls": sum(len(s.fall_onsets_s) for s in sessions),
             "window": {"before_s": window.before_s, "after_s": window.after_s},
             "detectors": [score.to_dict() for score in scores],
+            "roc": roc_report(labelled, window, scores),
             "events": {s.name: [_event_summary(e) for e in s.events] for s in sessions},
         }
         if plot is not None:
-            data["plots"] = _plot(plot, scores, sessions, loaded, window)
+            data["plots"] = [*_plot(plot, scores, sessions, loaded, window), _plot_roc(plot, data["roc"])]
         emit(data, as_json=as_json, human=_print_scores)
+
+    @app.command("tune-falls")
+    def tune_falls(
+        logs: list[Path] = typer.Argument(..., help="Training session logs (.npz/.parquet) or directories of them."),
+        out: Path | None = typer.Option(None, "--out", help="Write the tuned detector overrides (JSON) here."),
+        max_false_alarms_per_hour: float = typer.Option(
+            1.0, "--max-false-alarms-per-hour", help="Highest false-alarm rate (per hour) a setting may have."
+        ),
+        body_mass_kg: float | None = typer.Option(None, "--body-mass-kg", help="For logs without a sidecar."),
+        as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+    ) -> None:
+        """Tune the fused detector's weights, references and threshold on a labelled training cohort."""
+        try:
+            paths = _log_paths(logs)
+            with progress_bar("reading logs", len(paths), enabled=True) as advance:
+                labelled, _ = labelled_logs(paths, None, {}, body_mass_kg, advance)
+            with progress_bar("scoring settings", tuning_combinations(), enabled=True) as advance:
+                result = tune_fused(labelled, max_false_alarms_per_hour=max_false_alarms_per_hour, advance=advance)
+        except (ParameterError, OSError, ValueError) as error:
+            raise fail(str(error), as_json=as_json) from error
+        overrides = {"fused": result.settings}
+        data: dict[str, Any] = {
+            "sessions": len(labelled),
+            "hours": sum(log.duration_s for log in labelled) / 3600.0,
+            "falls": sum(len(log.fall_onsets_s) for log in labelled),
+            "combinations": result.combinations,
+            "training": result.training.to_dict(),
+            "detectors": overrides,
+            "out": None,
+        }
+        if out is not None:
+            out.write_text(json.dumps(overrides, indent=2))
+            data["out"] = str(out)
+        emit(data, as_json=as_json, human=_print_tuning)
+
+
+def _plot_roc(directory: Path, roc: dict[str, Any]) -> str:
+    """Sensitivity against false alarms per hour per detector, the operating point circled."""
+    plt = pyplot()
+    figure, axes = plt.subplots(figsize=(7, 5))
+    for detector, curve in roc.items():
+        points = sorted(curve["points"], key=lambda p: (p["false_alarms_per_hour"], p["sensitivity"]))
+        rates = [p["false_alarms_per_hour"] for p in points]
+        sensitivities = [100 * p["sensitivity"] for p in points]
+        (line,) = axes.plot(rates, sensitivities, marker=".", label=f"{detector} ({curve['parameter']})")
+        operating = curve["operating_point"]
+        axes.plot(
+            operating["false_alarms_per_hour"],
+            100 * operating["sensitivity"],
+            marker="o",
+            markersize=11,
+            markerfacecolor="none",
+            color=line.get_color(),
+        )
+    axes.axvline(1.0, color="grey", linestyle=":", label="1 false alarm / h")
+    axes.axhline(95.0, color="grey", linestyle="--", label="95 % sensitivity")
+    axes.set_xscale("symlog", linthresh=1.0)
+    axes.set_xlim(left=0.0)
+    axes.set_xlabel("false alarms per hour")
+    axes.set_ylabel("sensitivity (%)")
+    axes.set_ylim(0, 105)
+    axes.set_title("Fall detectors: ROC over their thresholds (circle: operating point)")
+    axes.legend(fontsize=7, loc="lower right")
+    return str(save_figure(figure, directory, "roc"))
+
+
+def _print_tuning(data: dict[str, Any]) -> None:
+    point = data["training"]
+    console.print(
+        f"{data['combinations']} combinations on {data['sessions']} sessions ({data['hours']:.2f} h, "
+        f"{data['falls']} falls): sensitivity {100 * point['sensitivity']:.0f} %, "
+        f"{point['false_alarms_per_hour']:.2f} false alarms/h at threshold {point['threshold']}"
+    )
+    console.print(f"fused settings: {json.dumps(data['detectors']['fused'])}")
+    if data.get("out"):
+        console.print(f"written to {data['out']} (pass it to evaluate-falls --detectors)")
 
 
 def _event_summary(event: FallEvent) -> dict[str, Any]:

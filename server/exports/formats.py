@@ -76,7 +76,7 @@ def open_zip(buffer: io.BytesIO) -> zipfile.ZipFile:
     return zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
 
 
-def _channel_table(log: SessionLog, *, header_units: bool) -> pa.Table:
+def channel_table(log: SessionLog, *, header_units: bool) -> pa.Table:
     """One column per scalar channel; CSV headers carry the unit, Parquet keeps it in field metadata."""
     arrays, schema_fields = [], []
     for channel in log.channels():
@@ -109,7 +109,7 @@ def write_csv_members(archive: zipfile.ZipFile, folder: str, log: SessionLog) ->
     """Write `telemetry.csv` (a time column first, one column per channel, `name [unit]` headers),
     `events.csv` and `metadata.json` into `folder` of an open zip, streaming the telemetry."""
     with archive.open(f"{folder}telemetry.csv", "w", force_zip64=True) as telemetry:
-        pa_csv.write_csv(_channel_table(log, header_units=True), telemetry)
+        pa_csv.write_csv(channel_table(log, header_units=True), telemetry)
     archive.writestr(f"{folder}events.csv", events_csv(log))
     archive.writestr(f"{folder}metadata.json", to_json(sidecar(log), indent=2))
 
@@ -123,7 +123,7 @@ def export_csv(log: SessionLog) -> bytes:
 
 def export_parquet(log: SessionLog) -> bytes:
     """A Parquet table of the channels; units in field metadata, sidecar and events in schema metadata."""
-    table = _channel_table(log, header_units=False)
+    table = channel_table(log, header_units=False)
     table = table.replace_schema_metadata(
         {METADATA_KEY: to_json(sidecar(log)).encode(), EVENTS_KEY: to_json(log.events).encode()}
     )

@@ -1,11 +1,13 @@
 """The session log's JSON metadata sidecar, with the patient pseudonymised by default (issue 6 §5).
 
 Pseudonymisation keeps what a fall-detection study needs (sex, height, body mass, age at the session,
-diagnosis, affected side) and replaces the name, identifier and date of birth by a stable id: an
+affected side) and replaces the name, identifier and date of birth by a stable id: an
 HMAC-SHA256 of the identifier keyed with a secret salt, so the same patient gets the same id in every
 export made with that salt, and the id cannot be reversed by hashing candidate hospital numbers
-without the salt. Patient fields are an allow-list: a field this module does not know is refused rather
-than copied, so that a new free-text column can never leak into a study export.
+without the salt. Free-text fields (diagnosis, notes, contraindications) may name people, places or rare
+conditions, so they are left out unless the export asks for them. Patient fields are an allow-list: a field
+this module does not know is refused rather than copied, so that a new free-text column can never leak into
+a study export.
 """
 
 from __future__ import annotations
@@ -21,15 +23,16 @@ from core.robot import TwinRobot, twin_to_dict
 from server.exports.log import SessionLogError
 
 PACKAGE_NAME = "ssp-rehab"
-KEPT_PATIENT_FIELDS = ("sex", "height_m", "body_mass_kg", "diagnosis", "affected_side", "age_at_session_years")
+KEPT_PATIENT_FIELDS = ("sex", "height_m", "body_mass_kg", "affected_side", "age_at_session_years")
+# Free text may name people or places: only in an export that asks for it (`include_free_text`).
+FREE_TEXT_PATIENT_FIELDS = ("diagnosis", "notes", "contraindications")
 IDENTIFYING_PATIENT_FIELDS = (
     "identifier",
     "name",
     "first_name",
     "last_name",
     "date_of_birth",
-    "notes",  # free text: may name people
-    "contraindications",  # free text
+    *FREE_TEXT_PATIENT_FIELDS,
     "id",  # database keys re-identify anyone with database access
     "patient_id",
     "created_at",
@@ -86,10 +89,13 @@ def _identifier(patient: Mapping[str, Any]) -> str:
     return identifier
 
 
-def pseudonymise(patient: Mapping[str, Any], salt: str | bytes, *, session_date: object = None) -> dict[str, Any]:
+def pseudonymise(
+    patient: Mapping[str, Any], salt: str | bytes, *, session_date: object = None, include_free_text: bool = False
+) -> dict[str, Any]:
     """The patient's anthropometrics with name, identifier and date of birth replaced by `pseudonym_id`.
 
-    `age_at_session_years` is computed from the date of birth when `session_date` is given.
+    `age_at_session_years` is computed from the date of birth when `session_date` is given. The free-text
+    fields (diagnosis, notes, contraindications) are left out unless `include_free_text`.
     """
     known = set(KEPT_PATIENT_FIELDS) | set(IDENTIFYING_PATIENT_FIELDS)
     for key in patient:
@@ -97,14 +103,18 @@ def pseudonymise(patient: Mapping[str, Any], salt: str | bytes, *, session_date:
             raise SessionLogError(f"patient.{key}", "<not shown>", "unknown patient field: neither kept nor removed")
     result: dict[str, Any] = {"pseudonym_id": pseudonym_id(_identifier(patient), salt)}
     result.update({key: patient[key] for key in KEPT_PATIENT_FIELDS if key in patient})
+    if include_free_text:
+        result.update({key: patient[key] for key in FREE_TEXT_PATIENT_FIELDS if key in patient})
     if session_date is not None and patient.get("date_of_birth") is not None:
         result["age_at_session_years"] = age_in_years(patient["date_of_birth"], session_date)
     return result
 
 
 def identifying_fields(patient: Mapping[str, Any]) -> list[str]:
-    """The identifying fields present in a patient record (empty for a pseudonymised one)."""
-    return [key for key in IDENTIFYING_PATIENT_FIELDS if patient.get(key) not in (None, "")]
+    """The identifying fields present in a patient record (empty for a pseudonymised one); free text asked
+    for in a pseudonymised export does not count."""
+    identifying = [key for key in IDENTIFYING_PATIENT_FIELDS if key not in FREE_TEXT_PATIENT_FIELDS]
+    return [key for key in identifying if patient.get(key) not in (None, "")]
 
 
 def session_metadata(
@@ -118,6 +128,7 @@ def session_metadata(
     twin: TwinRobot,
     salt: str | bytes,
     identified: bool = False,
+    include_free_text: bool = False,
 ) -> dict[str, Any]:
     """The metadata of one session run: patient (pseudonymised unless `identified`), prescription
     version and segments, washout parameters per segment, robot geometry, software version, sample rate."""
@@ -129,7 +140,7 @@ def session_metadata(
         if patient.get("date_of_birth") is not None:
             patient_record["age_at_session_years"] = age_in_years(patient["date_of_birth"], started_utc)
     else:
-        patient_record = pseudonymise(patient, salt, session_date=started_utc)
+        patient_record = pseudonymise(patient, salt, session_date=started_utc, include_free_text=include_free_text)
     return {
         "session_id": str(session_id),
         "started_utc": started_utc.isoformat(),

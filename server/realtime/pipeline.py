@@ -86,7 +86,7 @@ class TickPipeline:
         self.twin, self.hal, self.config = twin, hal, config
         self.control_rate_hz = control_rate_hz
         self.period_s = 1.0 / control_rate_hz
-        self._emit = emit
+        self._emit_to_worker = emit
         self.supervisor = Supervisor(config, self._supervisor_event)
         self.kernels = TwinKernels(twin, self.period_s)
         self.neutral_sliders = self.kernels.neutral_sliders()
@@ -140,6 +140,15 @@ class TickPipeline:
         self.phase_time_s = 0.0
         self.tick_index = -1
         self.start_ns = time.perf_counter_ns()
+        self.period_ns = round(1e9 / control_rate_hz)
+        # One clock for a session: each tick is stamped once, at its start, with perf_counter; telemetry, the
+        # fall detectors and every event's `session_time_s` are read from that stamp (ticks × period drifts
+        # from it whenever the loop skips a deadline).
+        self.tick_ns = self.start_ns
+        self.tick_time_s = 0.0  # since the worker started
+        self.session_start_ns: int | None = None
+        self.session_time_s = 0.0  # since the session's start
+        self.skipped_ticks = 0
         self.deadline_misses = 0
         self.limit_hits = 0
         self.last_limit = LimitCode.NONE
@@ -164,7 +173,11 @@ class TickPipeline:
             self.hal.attach_patient(plan.patient)
         self.plan, self.segments = plan, segments
         self.supervisor.load()
-        self._emit("prescription_loaded", {"segments": len(segments), "patient": plan.patient is not None}, None)
+        self._emit(
+            "prescription_loaded",
+            {"segments": len(segments), "patient": plan.patient is not None, "control_rate_hz": self.control_rate_hz},
+            None,
+        )
 
     def start(self) -> None:
         self.supervisor.require("start", SupervisorState.READY)
@@ -176,6 +189,8 @@ class TickPipeline:
             segment.restart()
         if self.fall_monitor is not None:
             self.fall_monitor.reset()
+        self.session_start_ns = time.perf_counter_ns()
+        self.session_time_s = 0.0
         self.supervisor.start()
 
     def pause(self) -> None:
@@ -204,6 +219,7 @@ class TickPipeline:
             self.hal.reset_fault()
         self.plan, self.segments = None, []
         self.estop_latency_ms = None
+        self.session_start_ns = None
 
     def heartbeat(self) -> None:
         self.supervisor.heartbeat()
@@ -217,6 +233,11 @@ class TickPipeline:
     def tick(self, lateness_ns: int) -> None:
         """One control period. Never raises: errors become a fault and an event."""
         self.tick_index += 1
+        self.tick_ns = time.perf_counter_ns()
+        self.tick_time_s = (self.tick_ns - self.start_ns) * 1e-9
+        if self.session_start_ns is not None:
+            self.session_time_s = (self.tick_ns - self.session_start_ns) * 1e-9
+        self.skipped_ticks = lateness_ns // self.period_ns if lateness_ns > 0 else 0
         self.wrote_this_tick = False
         late = lateness_ns > LATE_THRESHOLD_NS
         if late:
@@ -495,7 +516,11 @@ class TickPipeline:
         monitor = self.fall_monitor
         if monitor is not None and self.supervisor.state in (SupervisorState.RUNNING, SupervisorState.PAUSED):
             events = monitor.step(
-                self.tick_index * self.period_s, reading.plate_force_z_n, reading.plate_cop_m, reading.harness_load_n
+                self.session_time_s,
+                reading.plate_force_z_n,
+                reading.plate_cop_m,
+                reading.harness_load_n,
+                self.acceleration[2],  # the commanded heave: the plates' load swing it makes is no body drop
             )
             for event in events:
                 self._emit(
@@ -514,6 +539,11 @@ class TickPipeline:
     def _supervisor_event(self, kind: str, details: dict[str, Any]) -> None:
         self._emit(kind, details, None)
 
+    def _emit(self, kind: str, details: dict[str, Any], detector: str | None) -> None:
+        """Every event carries the time into the session on the session clock (null outside a session)."""
+        session_time_s = round(self.session_time_s, 6) if self.session_start_ns is not None else None
+        self._emit_to_worker(kind, {**details, "session_time_s": session_time_s}, detector)
+
     # --- telemetry --------------------------------------------------------------------------------
 
     def _record_view(self, name: str) -> np.ndarray:
@@ -522,7 +552,9 @@ class TickPipeline:
     def _fill_record(self, lateness_ns: int) -> None:
         record, supervisor = self.record, self.supervisor
         record["tick"] = self.tick_index
-        record["time_s"] = (time.perf_counter_ns() - self.start_ns) * 1e-9
+        record["time_s"] = self.tick_time_s
+        record["session_time_s"] = self.session_time_s if self.session_start_ns is not None else 0.0
+        record["skipped_ticks"] = min(self.skipped_ticks, 65535)
         record["utc_s"] = time.time()
         record["state"] = supervisor.state
         record["hal_state"] = HAL_STATE_CODES[self.hal.state]

@@ -84,7 +84,8 @@ HAL_STATES_BY_CODE = dict(enumerate(HalState))
 TELEMETRY_DTYPE = np.dtype(
     [
         ("tick", np.int64),
-        ("time_s", np.float64),  # monotonic tick time since the worker started
+        ("time_s", np.float64),  # monotonic time of this tick's start since the worker started
+        ("session_time_s", np.float64),  # the same clock, since the session's start (0 outside a session)
         ("utc_s", np.float64),  # wall clock, POSIX seconds
         ("segment_time_s", np.float64),
         ("cue_specific_force_m_s2", np.float64, (3,)),
@@ -107,6 +108,7 @@ TELEMETRY_DTYPE = np.dtype(
         ("segment", np.int16),  # prescription segment being played, -1 for none
         ("fk_iterations", np.int16),
         ("late_streak", np.uint16),  # consecutive late ticks
+        ("skipped_ticks", np.uint16),  # control periods skipped just before this sample (0: on time)
         ("drive_state", np.int8, (AXIS_COUNT,)),
         ("state", np.uint8),  # SupervisorState
         ("hal_state", np.uint8),  # HAL_STATE_CODES

@@ -90,7 +90,7 @@ class Worker:
     def emit(self, kind: str, details: dict[str, Any], detector: str | None = None) -> None:
         slot = self.events.slot()
         slot["tick"] = self.pipeline.tick_index
-        slot["tick_time_s"] = self.pipeline.record["time_s"][0]
+        slot["tick_time_s"] = self.pipeline.tick_time_s  # this tick's stamp: the clock of session_time_s
         slot["utc_s"] = time.time()
         encode_event(slot, kind, details, detector)
         self.events.publish()

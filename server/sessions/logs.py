@@ -20,6 +20,7 @@ from server.scheduling.models import ScheduledSession
 from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
 from server.sessions.recorder import decode_chunk
 from server.sessions.service import get_run
+from server.settings import Settings
 
 MAX_RUNS_PER_BUNDLE = 200
 
@@ -34,9 +35,15 @@ def telemetry_columns(*, session: Session, run_id: int) -> dict[str, np.ndarray]
     return {name: np.ascontiguousarray(records[name]) for name in records.dtype.names or ()}
 
 
-def sample_rate_hz(time_s: np.ndarray) -> float:
-    """The recorded rate: the median tick interval, robust to the odd late tick."""
-    return float(1.0 / np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
+def sample_rate_hz(events: list[dict[str, Any]]) -> float:
+    """The nominal control rate the run was recorded at (what C3D's ANALOG:RATE must say), from the worker's
+    `prescription_loaded` event; runs recorded before it carried the rate get the configured default. The
+    measured tick intervals are no substitute: under load they said 1075.28 Hz for a 1 kHz run."""
+    for event in events:
+        rate = event["details"].get("control_rate_hz") if event["kind"] == "prescription_loaded" else None
+        if isinstance(rate, int | float) and not isinstance(rate, bool) and rate > 0:
+            return float(rate)
+    return float(Settings.model_fields["control_rate_hz"].default)
 
 
 def clocked_events(
@@ -68,9 +75,10 @@ def clocked_events(
     return placed, unplaced
 
 
-def patient_record(patient: Patient) -> dict[str, Any]:
-    """The patient fields an export may carry; free-text notes never leave the record."""
-    return {
+def patient_record(patient: Patient, *, include_free_text: bool = False) -> dict[str, Any]:
+    """The patient fields an export may carry; the free-text notes only when the export asks for free text
+    (the pseudonymiser drops the diagnosis too unless asked)."""
+    record = {
         "identifier": patient.identifier,
         "name": patient.name,
         "date_of_birth": patient.date_of_birth.isoformat(),
@@ -80,9 +88,14 @@ def patient_record(patient: Patient) -> dict[str, Any]:
         "diagnosis": patient.diagnosis,
         "affected_side": patient.affected_side,
     }
+    if include_free_text:
+        record["notes"] = patient.notes
+    return record
 
 
-def session_log(*, session: Session, run_id: int, twin: TwinRobot, salt: bytes, identify: bool) -> Any:
+def session_log(
+    *, session: Session, run_id: int, twin: TwinRobot, salt: bytes, identify: bool, include_free_text: bool = False
+) -> Any:
     """One run's `server.exports.SessionLog`: telemetry columns, events and the metadata sidecar."""
     from server.exports import SessionLog, session_metadata
 
@@ -98,13 +111,14 @@ def session_log(*, session: Session, run_id: int, twin: TwinRobot, salt: bytes, 
     metadata = session_metadata(
         session_id=f"run-{run.id}",
         started_utc=run.started_at,
-        sample_rate_hz=sample_rate_hz(columns["time_s"]),
-        patient=patient_record(patient),
+        sample_rate_hz=sample_rate_hz(events),
+        patient=patient_record(patient, include_free_text=include_free_text),
         prescription=version.content,
         prescription_version=version.version,
         twin=twin,
         salt=salt,
         identified=identify,
+        include_free_text=include_free_text,
     )
     metadata["run"] = {
         "id": run.id,

@@ -179,13 +179,14 @@ def _exports() -> ModuleType:
         raise HTTPException(status.HTTP_501_NOT_IMPLEMENTED, detail="export formats are not installed") from error
 
 
-def _log_for_run(request: Request, session: Any, run_id: int, identify: bool) -> Any:
+def _log_for_run(request: Request, session: Any, run_id: int, identify: bool, include_free_text: bool = False) -> Any:
     return logs.session_log(
         session=session,
         run_id=run_id,
         twin=request.app.state.twin,
         salt=request.app.state.pseudonym_key,
         identify=identify,
+        include_free_text=include_free_text,
     )
 
 
@@ -243,15 +244,29 @@ def export_study(
     from_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
     to_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
     diagnosis: Annotated[str | None, Query(max_length=200, pattern=NO_NUL_PATTERN)] = None,
+    layout: Annotated[
+        Literal["folders", "parquet_dataset"],
+        Query(description="folders: a folder per run; parquet_dataset: hive-partitioned Parquet (docs/exports.md)."),
+    ] = "folders",
+    include_free_text: Annotated[bool, Query(description="Keep the free-text diagnosis and notes.")] = False,
 ) -> Response:
     """Pseudonymised session logs of every recorded run started from `from_date` to `to_date` (UTC days)."""
     rows = logs.study_run_ids(session=session, start=from_date, end=to_date, diagnosis=diagnosis)
     if not rows:
         raise NotFoundError("recorded session runs in that range", f"{from_date}..{to_date}")
     exports = _exports()
-    selection = {"from_date": str(from_date), "to_date": str(to_date), "diagnosis": diagnosis}
+    selection: dict[str, Any] = {
+        "from_date": str(from_date),
+        "to_date": str(to_date),
+        "diagnosis": diagnosis,
+        "include_free_text": include_free_text,
+    }
     try:
-        bundle = exports.export_bundle([_log_for_run(request, session, r, False) for r, _ in rows], selection=selection)
+        study = [_log_for_run(request, session, r, False, include_free_text) for r, _ in rows]
+        if layout == "parquet_dataset":
+            bundle = importlib.import_module("server.exports.dataset").dataset_zip(study, selection=selection)
+        else:
+            bundle = exports.export_bundle(study, selection=selection)
     except exports.SessionLogError as error:
         raise ConflictError(f"the study bundle cannot be exported: {error}", field=error.field) from error
     _audit(
@@ -259,9 +274,14 @@ def export_study(
         user_id=user.id,
         action="export",
         resource_type="study",
-        details={"run_ids": [r for r, _ in rows], "patient_ids": sorted({p for _, p in rows})},
+        details={
+            "run_ids": [r for r, _ in rows],
+            "patient_ids": sorted({p for _, p in rows}),
+            "layout": layout,
+            "free_text": include_free_text,
+        },
     )
-    filename = f"ssp-rehab-study-{from_date}-{to_date}.zip"
+    filename = f"ssp-rehab-study-{from_date}-{to_date}{'-parquet' if layout == 'parquet_dataset' else ''}.zip"
     return Response(
         bundle, media_type="application/zip", headers={"Content-Disposition": f'attachment; filename="{filename}"'}
     )

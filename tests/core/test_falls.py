@@ -11,20 +11,25 @@ from core.falls import (
     ANY_DETECTOR,
     COP_OUTSIDE_BASE,
     FOOT_UNLOADED,
+    FUSED,
     HARNESS_LOAD,
     CopOutsideBaseConfig,
     FallDetectorConfig,
     FallEvent,
     FallMonitor,
     FootUnloadedConfig,
+    FusedDetector,
     HarnessLoadConfig,
+    LabelledLog,
     MatchingWindow,
     SessionDetections,
     detect_falls,
+    roc_curve,
     samples_for,
     score_detector,
+    tune_fused,
 )
-from core.patient import GRAVITY_M_S2, ParameterError, PatientParameters, Perturbation, simulate_trial
+from core.patient import GRAVITY_M_S2, ParameterError, PatientParameters, Perturbation, simulate, simulate_trial
 
 PERIOD_S = 0.001
 MASS_KG = 70.0
@@ -187,7 +192,8 @@ def test_streaming_and_batch_agree_on_noisy_random_signals() -> None:
 
 
 def test_detectors_catch_a_simulated_fall_after_it_starts() -> None:
-    params = PatientParameters.preset("impaired", MASS_KG, 1.75)
+    # No protective response: the harness catches the patient.
+    params = PatientParameters.preset("impaired", MASS_KG, 1.75, step_probability=0.0, grab_probability=0.0)
     _, trial = simulate_trial(params, [Perturbation("translation", 2.0, 0.0, 3.0, 0.5)], 6.0, PERIOD_S, 1)
     events = detect_falls(
         FallDetectorConfig.for_patient(MASS_KG, 1.75),
@@ -276,3 +282,119 @@ def test_scoring_without_falls_or_detections_is_defined() -> None:
     score = score_detector([SessionDetections("quiet", 3600.0, (), ())], HARNESS_LOAD)
     assert math.isnan(score.sensitivity) and score.false_alarms_per_hour == 0.0
     assert math.isnan(score.latency_percentile_s(50))
+
+
+# --- the fused detector (issue 16 defect 5) -------------------------------------------------------------
+
+
+def fused_only(mass_kg: float = MASS_KG, height_m: float = 1.75) -> FallDetectorConfig:
+    return FallDetectorConfig.for_patient(mass_kg, height_m)
+
+
+def run_detectors(config: FallDetectorConfig, trial: object, support_az: np.ndarray | None = None) -> list:
+    return detect_falls(
+        config,
+        PERIOD_S,
+        trial.time_s,  # type: ignore[attr-defined]
+        trial.plate_force_z_n,  # type: ignore[attr-defined]
+        trial.plate_cop_m,  # type: ignore[attr-defined]
+        trial.harness_load_n,  # type: ignore[attr-defined]
+        support_az,
+    )
+
+
+@pytest.mark.parametrize("response", ["step", "grab", "harness_catch"])
+def test_the_fused_detector_catches_a_step_a_grab_and_a_harness_catch(response: str) -> None:
+    """The original detectors missed most of these (sensitivity 0.67; foot-unloaded never fired)."""
+    shares = {"step": (1.0, 0.0), "grab": (0.0, 1.0), "harness_catch": (0.0, 0.0)}[response]
+    params = PatientParameters.preset("impaired", MASS_KG, 1.75, step_probability=shares[0], grab_probability=shares[1])
+    _, trial = simulate_trial(params, [Perturbation("translation", 2.0, 0.0, 2.5, 0.5)], 7.0, PERIOD_S, 4)
+    assert trial.fall_response == response
+    events = [e for e in run_detectors(fused_only(), trial) if e.detector == FUSED]
+    assert events, f"{response}: the fused detector never fired"
+    assert trial.fall_onset_s - 1.0 <= events[0].detected_s <= trial.fall_onset_s + 2.0
+    assert events[0].values["score"] >= events[0].values["threshold"]
+    assert set(events[0].values["evidence"]) == {"harness", "edge", "drop", "unload", "foot"}
+
+
+def test_the_fused_detector_stays_quiet_through_hard_recoveries_and_heave() -> None:
+    """A healthy patient recovering from 1 m/s² pulses (COP near the heel/toe) is no fall; nor is a heave
+    cue, whose vertical support acceleration the detector takes out of the body-drop estimate."""
+    pulses = [Perturbation("translation", 2.0 + 6.0 * k, k * math.pi / 2, 1.0, 0.5) for k in range(4)]
+    for seed in range(3):
+        _, trial = simulate_trial(PatientParameters.preset("healthy", MASS_KG, 1.75), pulses, 28.0, PERIOD_S, seed)
+        assert math.isnan(trial.fall_onset_s)
+        assert not run_detectors(fused_only(), trial), seed
+    time_s = np.arange(1, 20_001) * PERIOD_S
+    heave = np.zeros((time_s.size, 3))
+    heave[:, 2] = 1.0 * np.sin(2 * math.pi * 1.0 * time_s)  # ±2.5 cm: inside the harness slack
+    params = PatientParameters.preset("healthy", MASS_KG, 1.75)
+    trial = simulate(params, PERIOD_S, 1, heave, np.zeros((time_s.size, 2)), np.zeros((time_s.size, 3)))
+    assert math.isnan(trial.fall_onset_s)
+    assert not run_detectors(fused_only(), trial, heave[:, 2])
+    fused = FusedDetector(fused_only(), PERIOD_S)
+    with_heave, _ = fused.scores(trial.plate_force_z_n, trial.plate_cop_m, trial.harness_load_n, heave[:, 2])
+    without, _ = fused.scores(trial.plate_force_z_n, trial.plate_cop_m, trial.harness_load_n)
+    assert with_heave.max() < 0.5 * without.max()  # the load swing of the heave is not a body drop
+
+
+def test_the_fused_detector_streams_the_events_of_the_batch_form() -> None:
+    params = PatientParameters.preset("impaired", MASS_KG, 1.75, step_probability=0.0, grab_probability=1.0)
+    _, trial = simulate_trial(params, [Perturbation("translation", 1.0, 0.0, 2.5, 0.5)], 5.0, PERIOD_S, 2)
+    config = fused_only()
+    batch = [e for e in run_detectors(config, trial) if e.detector == FUSED]
+    monitor = FallMonitor(config, PERIOD_S)
+    streamed = []
+    for n in range(len(trial.time_s)):
+        fired = monitor.step(trial.time_s[n], trial.plate_force_z_n[n], trial.plate_cop_m[n], trial.harness_load_n[n])
+        streamed += [e for e in fired if e.detector == FUSED]
+    assert batch and [(e.tick, e.onset_s, e.detected_s) for e in streamed] == [
+        (e.tick, e.onset_s, e.detected_s) for e in batch
+    ]
+    assert streamed[0].values == batch[0].values
+
+
+def test_invalid_fused_settings_are_refused_naming_the_field() -> None:
+    with pytest.raises(ParameterError) as error:
+        FallDetectorConfig.from_dict({"body_mass_kg": MASS_KG, "fused": {"threshold": 0.0}})
+    assert error.value.field == "fused.threshold"
+    with pytest.raises(ParameterError, match=r"fused\.wings"):
+        FallDetectorConfig.from_dict({"body_mass_kg": MASS_KG, "fused": {"wings": 1}})
+
+
+def test_roc_curves_and_tuning_on_labelled_logs() -> None:
+    logs = []
+    for index, (preset, magnitude) in enumerate(
+        [("impaired", 3.0), ("healthy", 1.0), ("impaired", 3.0), ("healthy", 0.8)]
+    ):
+        params = PatientParameters.preset(preset, MASS_KG, 1.75)
+        _, trial = simulate_trial(params, [Perturbation("translation", 2.0, 0.0, magnitude, 0.5)], 8.0, PERIOD_S, index)
+        onsets = () if math.isnan(trial.fall_onset_s) else (trial.fall_onset_s,)
+        logs.append(
+            LabelledLog(
+                f"s{index}",
+                fused_only(),
+                PERIOD_S,
+                trial.time_s,
+                trial.plate_force_z_n,
+                trial.plate_cop_m,
+                trial.harness_load_n,
+                None,
+                onsets,
+            )
+        )
+    assert sum(len(log.fall_onsets_s) for log in logs) == 2
+    curve = roc_curve(logs, FUSED)
+    assert [p.threshold for p in curve] == sorted(p.threshold for p in curve)
+    assert curve[0].sensitivity == 1.0 and curve[-1].sensitivity <= curve[0].sensitivity
+    grid = {
+        "weight_edge": (0.0, 0.5),
+        "weight_foot": (0.5,),
+        "drop_reference_m": (0.07,),
+        "unload_reference_fraction": (0.3,),
+    }
+    result = tune_fused(logs, grid=grid)
+    assert result.combinations == 2 and result.training.sensitivity == 1.0
+    assert result.training.false_alarms_per_hour <= 1.0 and set(result.settings) == {*grid, "threshold"}
+    with pytest.raises(ParameterError, match="detector"):
+        roc_curve(logs, "crystal_ball")

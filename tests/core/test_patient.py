@@ -92,7 +92,7 @@ def test_healthy_patient_stays_standing_through_mild_perturbations() -> None:
     [Perturbation("translation", 2.0, 0.0, 3.0, 0.5), Perturbation("tilt", 2.0, math.pi, math.radians(8.0), 0.5)],
 )
 def test_impaired_patient_falls_under_a_large_perturbation_and_the_harness_catches(perturbation: Perturbation) -> None:
-    params = impaired()
+    params = impaired(step_probability=0.0, grab_probability=0.0)  # no protective response: the rope catches
     _, trial = simulate_trial(params, [perturbation], 8.0, PERIOD_S, seed=1)
     assert perturbation.onset_s < trial.fall_onset_s < perturbation.onset_s + 3.0
     after = trial.time_s >= trial.fall_onset_s
@@ -105,11 +105,13 @@ def test_impaired_patient_falls_under_a_large_perturbation_and_the_harness_catch
 
 
 def test_support_acceleration_tips_the_body_the_other_way() -> None:
+    # Without the predictive feedforward (which cancels the inertial push) the equation's sign shows.
+    quiet = healthy(sensory_noise_rad=0.0, motor_noise_per_mgh=0.0, acceleration_feedforward_gain=0.0)
     forward = Perturbation("translation", 1.0, 0.0, 1.0, 0.5)
-    _, trial = simulate_trial(healthy(sensory_noise_rad=0.0, motor_noise_per_mgh=0.0), [forward], 1.2, PERIOD_S, 0)
+    _, trial = simulate_trial(quiet, [forward], 1.2, PERIOD_S, 0)
     assert trial.sway_angle_rad[-1, 0] < -0.005  # the feet run forward, the body lags backward
     left = Perturbation("translation", 1.0, math.pi / 2, 1.5, 0.5)
-    _, trial = simulate_trial(healthy(sensory_noise_rad=0.0, motor_noise_per_mgh=0.0), [left], 1.2, PERIOD_S, 0)
+    _, trial = simulate_trial(quiet, [left], 1.2, PERIOD_S, 0)
     assert trial.sway_angle_rad[-1, 1] < -0.005
     # Swaying to the right loads the right foot (index 0).
     assert trial.plate_force_z_n[-1, 0] > trial.plate_force_z_n[-1, 1] + 20.0
@@ -133,6 +135,54 @@ def test_cop_stays_on_the_feet_when_the_torque_saturates() -> None:
     # It reached an edge and stayed there: the torque saturated instead of the COP leaving the foot.
     at_edge = np.isclose(cop_x, -params.foot.heel_m, atol=1e-9) | np.isclose(cop_x, params.foot.toe_m, atol=1e-9)
     assert np.count_nonzero(at_edge) > 50
+
+
+def test_measured_cop_never_leaves_the_sole_even_with_sensor_noise() -> None:
+    """Issue 16 defect 4: a foot cannot push its COP outside its sole, whatever the noise of the plate."""
+    params = impaired()
+    hard = [Perturbation("translation", 1.0, 0.0, 3.0, 0.5), Perturbation("translation", 6.0, math.pi, 3.0, 0.5)]
+    for seed in range(4):
+        _, trial = simulate_trial(params, hard, 9.0, PERIOD_S, seed)
+        cop = trial.plate_cop_m
+        assert cop[..., 0].min() >= -params.foot.heel_m and cop[..., 0].max() <= params.foot.toe_m, seed
+        assert np.abs(cop[..., 1]).max() <= params.foot.half_breadth_m, seed
+
+
+def test_a_half_m_s2_training_sine_is_no_fall_for_a_healthy_patient() -> None:
+    """0.5 m/s² at 0.5 Hz (the console's default cue) is ordinary training: no loss of balance, COP well inside."""
+    time_s = np.arange(1, 20_001) * PERIOD_S
+    acceleration = np.zeros((time_s.size, 3))
+    acceleration[:, 0] = 0.5 * np.sin(2 * math.pi * 0.5 * time_s) * np.minimum(1.0, time_s / 3.0)
+    for mass in (64.0, 120.0):
+        params = PatientParameters.preset("healthy", mass, 1.75)
+        trial = simulate(params, PERIOD_S, 5, acceleration, np.zeros((time_s.size, 2)), np.zeros((time_s.size, 3)))
+        assert math.isnan(trial.fall_onset_s), mass
+        assert np.degrees(np.abs(trial.sway_angle_rad[:, 0]).max()) < 2.0
+        assert trial.plate_cop_m[..., 0].min() > -0.9 * params.foot.heel_m
+
+
+@pytest.mark.parametrize("response", ["step", "grab", "harness_catch"])
+def test_a_loss_of_balance_is_a_step_a_grab_or_a_harness_catch(response: str) -> None:
+    """Once the extrapolated COM leaves the feet the patient steps (a plate unloads), grabs the rail (the
+    plates lose the hand's share) or is caught (the rope takes the weight, the body sags)."""
+    shares = {"step": (1.0, 0.0), "grab": (0.0, 1.0), "harness_catch": (0.0, 0.0)}[response]
+    params = impaired(step_probability=shares[0], grab_probability=shares[1])
+    _, trial = simulate_trial(params, [Perturbation("translation", 1.0, 0.0, 3.0, 0.5)], 5.0, PERIOD_S, 3)
+    assert trial.fall_response == response
+    onset = trial.fall_onset_s
+    assert 1.0 < onset < 2.5
+    weight = params.body_weight_n
+    before, after = trial.time_s < onset, trial.time_s > onset + 1.0
+    assert np.max(trial.harness_load_n[before]) < 0.1 * weight
+    if response == "step":
+        unloaded = trial.plate_force_z_n.min(axis=1) < 0.05 * weight
+        assert np.count_nonzero(unloaded & ~before) * PERIOD_S > 0.3  # a foot left its plate
+        assert not unloaded[before].any()
+    elif response == "grab":
+        assert np.median(trial.plate_force_z_n[after].sum(axis=1)) < (1.0 - 0.8 * params.grab_load_fraction_bw) * weight
+    else:
+        assert np.max(trial.harness_load_n[after]) > 0.3 * weight
+        assert trial.body_drop_m is not None and trial.body_drop_m.max() > 0.02
 
 
 def test_streaming_steps_reproduce_the_batch_run_exactly() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -50,11 +51,39 @@ def test_evaluate_falls_scores_the_cohort_and_plots(cohort: tuple[Path, dict], t
     data = json.loads(result.stdout)
     assert data["sessions"] == 3 and data["falls"] == 2
     by_name = {d["detector"]: d for d in data["detectors"]}
-    assert set(by_name) == {"harness_load", "cop_outside_base", "foot_unloaded", "any"}
+    assert set(by_name) == {"harness_load", "cop_outside_base", "foot_unloaded", "fused", "any"}
     assert by_name["any"]["detected"] >= by_name["harness_load"]["detected"]
     assert by_name["harness_load"]["sensitivity"] == by_name["harness_load"]["detected"] / 2
-    assert {Path(p).name for p in data["plots"]} == {"latency_histogram.png", "sensitivity.png", "example_trace.png"}
+    assert {Path(p).name for p in data["plots"]} == {
+        "latency_histogram.png",
+        "sensitivity.png",
+        "example_trace.png",
+        "roc.png",
+    }
     assert all(Path(p).stat().st_size > 1000 for p in data["plots"])
+    # ROC curves with the operating point: it is the configured threshold's own score.
+    fused = data["roc"]["fused"]
+    assert fused["parameter"] == "fused.threshold" and len(fused["points"]) > 10
+    assert fused["operating_point"]["sensitivity"] == by_name["fused"]["sensitivity"]
+    assert fused["operating_point"]["false_alarms_per_hour"] == by_name["fused"]["false_alarms_per_hour"]
+    harness = sorted(data["roc"]["harness_load"]["points"], key=lambda p: p["threshold"])
+    assert all(a["sensitivity"] >= b["sensitivity"] for a, b in itertools.pairwise(harness))
+
+
+def test_tune_falls_writes_settings_that_evaluate_falls_takes(cohort: tuple[Path, dict], tmp_path: Path) -> None:
+    out, _ = cohort
+    settings = tmp_path / "fused.json"
+    result = runner.invoke(app, ["tune-falls", str(out), "--out", str(settings), "--json"])
+    assert result.exit_code == 0, result.output
+    data = json.loads(result.stdout)
+    assert data["combinations"] == 81 and data["training"]["false_alarms_per_hour"] <= 1.0
+    assert set(json.loads(settings.read_text())) == {"fused"}
+    evaluated = runner.invoke(app, ["evaluate-falls", str(out), "--detectors", str(settings), "--json"])
+    assert evaluated.exit_code == 0, evaluated.output
+    scores = {d["detector"]: d for d in json.loads(evaluated.stdout)["detectors"]}
+    assert scores["fused"]["sensitivity"] == data["training"]["sensitivity"]
+    refused = runner.invoke(app, ["tune-falls", str(out), "--max-false-alarms-per-hour", "-1", "--json"])
+    assert refused.exit_code == 2 and "max_false_alarms_per_hour" in json.loads(refused.stdout)["error"]
 
 
 def test_a_truth_file_replaces_the_sidecar_labels(cohort: tuple[Path, dict], tmp_path: Path) -> None:

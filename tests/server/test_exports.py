@@ -401,8 +401,8 @@ def test_an_unknown_field_gets_numbered_channels_with_the_unit_of_its_name(twin,
 
 def test_pseudonymise_keeps_anthropometrics_and_replaces_identity():
     record = pseudonymise(PATIENT, SALT, session_date=dt.date(2024, 3, 1))
-    kept = {"sex", "height_m", "body_mass_kg", "diagnosis", "affected_side", "age_at_session_years"}
-    assert set(record) == {"pseudonym_id", *kept}
+    kept = {"sex", "height_m", "body_mass_kg", "affected_side", "age_at_session_years"}
+    assert set(record) == {"pseudonym_id", *kept}  # issue 16 §9: no free text (diagnosis, notes) by default
     assert record["age_at_session_years"] == 62  # born 15 July 1961, not yet 63 on 1 March 2024
     assert pseudonymise(PATIENT, SALT, session_date=dt.date(2024, 7, 15))["age_at_session_years"] == 63
     assert record["pseudonym_id"] == pseudonymise(dict(PATIENT, notes="other"), SALT)["pseudonym_id"]
@@ -529,7 +529,7 @@ def test_bundle_has_a_folder_per_session_and_a_pseudonymised_index(twin, columns
         ):
             assert f"{folder}/{member}" in names
     index = list(csv.DictReader(io.StringIO(archive.read("index.csv").decode())))
-    assert [row["diagnosis"] for row in index] == ["vestibular hypofunction", "stroke"]
+    assert [row["diagnosis"] for row in index] == ["", ""]  # free text only when asked for
     assert [row["session_date"] for row in index] == ["2024-03-01", "2024-03-10"]
     assert index[0]["event_kinds"] == "fall:1;pause:1" and index[1]["event_count"] == "0"
     assert all(row["pseudonym_id"].startswith("P-") for row in index)

@@ -1,0 +1,150 @@
+"""Whole sessions through the worker's tick pipeline with the simulated patient (issue 16 defects 3 and 4).
+
+A 0.5 m/s² x-axis sine is ordinary training: it must end `completed`, not as a fall, for light and heavy
+patients on every simulated backend. The session runs at a reduced duration (the defect showed ~3 s in).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from core.robot import default_twin
+from server.hal.backends import make_hal
+from server.realtime.pipeline import TickPipeline
+from server.realtime.prescription import plan_prescription
+from server.realtime.supervisor import SupervisorConfig
+from server.realtime.telemetry import StopReason, SupervisorState
+
+RATE_HZ = 1000
+SINE_X = {"kind": "sine", "axis": "x", "amplitude_m_s2": 0.5, "frequency_hz": 0.5}
+
+
+def loaded_pipeline(
+    backend: str, patient: dict[str, Any], cue: dict[str, Any], duration_s: float, emit: Any
+) -> TickPipeline:
+    """A pipeline on `backend` with a one-segment prescription for `patient` loaded, drives still off."""
+    twin = default_twin()
+    config = SupervisorConfig()
+    options = {"communication_timeout_s": 1e6} if backend == "kinematic" else {}
+    hal = make_hal(backend, twin, 1.0 / RATE_HZ, **options)
+    hal.configure()
+    hal.home()
+    pipeline = TickPipeline(twin, hal, RATE_HZ, config, emit)
+    plan = plan_prescription(
+        {"segments": [{"cue": cue, "duration_s": duration_s}]},
+        twin,
+        control_rate_hz=RATE_HZ,
+        config=config,
+        patient=patient,
+    )
+    pipeline.load(plan)
+    pipeline.heartbeat()
+    return pipeline
+
+
+def run_session(
+    backend: str, patient: dict[str, Any], cue: dict[str, Any], duration_s: float, skip_every: int = 0
+) -> tuple[TickPipeline, list[tuple[int, str, str | None, dict[str, Any]]], np.ndarray]:
+    """Tick a pipeline until the drives are off; `skip_every` > 0 drops every n-th period (a late worker)."""
+    events: list[tuple[int, str, str | None, dict[str, Any]]] = []
+    built: list[TickPipeline] = []  # the load's own events come before the pipeline is returned
+
+    def record(kind: str, details: dict[str, Any], detector: str | None) -> None:
+        events.append((built[0].tick_index if built else -1, kind, detector, details))
+
+    pipeline = loaded_pipeline(backend, patient, cue, duration_s, record)
+    built.append(pipeline)
+    pipeline.start()
+    session_times = []
+    for tick in range(round((duration_s + 30.0) * RATE_HZ)):
+        pipeline.heartbeat()
+        lateness_ns = 0
+        if skip_every and tick % skip_every == skip_every - 1:
+            lateness_ns = round(1e9 / RATE_HZ)  # one period late: the loop skipped a deadline
+        pipeline.tick(lateness_ns)
+        session_times.append(float(pipeline.record["session_time_s"][0]))
+        if not pipeline.supervisor.drives_enabled and pipeline.supervisor.state is not SupervisorState.RUNNING:
+            break
+    pipeline.hal.shutdown()
+    return pipeline, events, np.asarray(session_times)
+
+
+SIM_HEAVY_PATIENT_UNSTABLE = pytest.mark.xfail(
+    strict=True,
+    reason="server/sim: the horizontal force that carries the patient along is computed from the platform's "
+    "finite-differenced acceleration of the previous step, a one-step algebraic loop that diverges with a "
+    "120 kg patient (support acceleration ~ -10 m/s² with the platform at rest); reported to the HAL engineer",
+)
+
+
+@pytest.mark.parametrize(
+    ("backend", "body_mass_kg"),
+    [
+        ("kinematic", 64.0),
+        ("kinematic", 120.0),
+        ("sim", 64.0),
+        pytest.param("sim", 120.0, marks=SIM_HEAVY_PATIENT_UNSTABLE),
+    ],
+)
+def test_a_half_m_s2_x_sine_session_completes_without_a_fall(backend: str, body_mass_kg: float) -> None:
+    pipeline, events, _ = run_session(backend, {"body_mass_kg": body_mass_kg, "height_m": 1.75}, SINE_X, 12.0)
+    falls = [details for _, kind, _, details in events if kind == "fall"]
+    assert not falls, f"{backend}, {body_mass_kg} kg: the session ended as a fall: {falls[0]}"
+    assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, pipeline.supervisor.stop_reason
+
+
+class SteppedClock:
+    """perf_counter_ns for a pipeline ticked by the test: it advances one period per tick, or two when the
+    loop skipped a deadline, so that ticks × period and the true clock part as they do on a loaded worker."""
+
+    def __init__(self) -> None:
+        self.now_ns = 10**12
+
+    def __call__(self) -> int:
+        return self.now_ns
+
+
+def test_fall_times_events_and_telemetry_share_the_session_clock_when_ticks_are_skipped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 16 defect 3: a fall event's onset and detection, its session time and the telemetry's session
+    time are one clock; skipped ticks are flagged per sample."""
+    clock = SteppedClock()
+    monkeypatch.setattr("server.realtime.pipeline.time.perf_counter_ns", clock)
+    events: list[tuple[str, dict[str, Any], int]] = []
+    # A hair-trigger unloading detector, so that a fall is reported while the cue plays.
+    patient = {
+        "body_mass_kg": 70.0,
+        "height_m": 1.75,
+        "fall_detectors": {"unload": {"enabled": True, "threshold_fraction_bw": 0.499}},
+    }
+    pipeline = loaded_pipeline(
+        "kinematic", patient, SINE_X, 20.0, lambda kind, details, _: events.append((kind, details, clock.now_ns))
+    )
+    start_ns = clock.now_ns
+    pipeline.start()
+    period_ns = round(1e9 / RATE_HZ)
+    session_times, skipped = [], []
+    for tick in range(30 * RATE_HZ):
+        late = tick % 3 == 2  # every third deadline is missed: a third of the ticks never run
+        clock.now_ns += period_ns * (2 if late else 1)
+        pipeline.heartbeat()
+        pipeline.tick(period_ns if late else 0)
+        session_times.append(float(pipeline.record["session_time_s"][0]))
+        skipped.append(int(pipeline.record["skipped_ticks"][0]))
+        if any(kind == "fall" for kind, _, _ in events):
+            break
+    falls = [(details, at_ns) for kind, details, at_ns in events if kind == "fall"]
+    assert falls, "the hair-trigger detector never fired"
+    details, at_ns = falls[0]
+    assert details["feet"], details  # the hair-trigger unloading detector, not a false alarm of the others
+    true_session_s = (at_ns - start_ns) * 1e-9
+    assert details["detected_s"] == pytest.approx(true_session_s, abs=1e-9)
+    assert details["session_time_s"] == pytest.approx(true_session_s, abs=1e-6)
+    assert details["onset_s"] <= details["detected_s"] < details["onset_s"] + 1.0
+    assert session_times[-1] == pytest.approx(true_session_s, abs=1e-9)
+    assert skipped[2::3] == [1] * len(skipped[2::3]) and set(skipped[0::3]) == {0}
+    pipeline.hal.shutdown()
