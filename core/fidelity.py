@@ -1,9 +1,11 @@
 """Motion-fidelity metrics of a washout run (paper §4.2, Formulas 16–19).
 
 Perception errors are platform-perceived minus commanded-perceived, each through the vestibular
-models (Formulas 14–15). The platform's specific force is what a head fixed to the platform feels,
-Rᵀ·(a + g e_z) − g e_z, so the gravity component the tilt adds counts; its angular velocity is the
-body rate of the Euler-angle trajectory. Platform motion is displacement and angular velocity.
+models (Formulas 14–15). They are judged at the patient's head (`core.perception`, issue 14 §2): the
+specific force there is Rᵀ·(a + g e_z) − g e_z plus the lever-arm terms ω̇ × r + ω × (ω × r) of the
+platform's rotation, so both the gravity component the tilt adds and the head's swing during a tilt
+onset count; the angular velocity is the body rate of the Euler-angle trajectory. `head_height_m = 0`
+gives the paper's rotation-centre metrics. Platform motion is displacement and angular velocity.
 
 Each quantity is reported per axis as RMS and peak. The paper normalises its two objectives because
 their magnitudes differ (§4.2, ref. [16]) without saying how; here every RMS is divided by a scale
@@ -19,12 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.robot import GRAVITY_M_S2
+from core.perception import DEFAULT_HEAD_HEIGHT_M, STANDING, head_specific_force
 from core.shaping import require_positive
 from core.vestibular import VestibularModel
 from core.washout import WashoutTrajectory, body_rates, rotate
 
-STANDING = np.array([[0.0], [0.0], [GRAVITY_M_S2]])
 OBJECTIVE_NAMES = ("perception_error", "platform_motion")
 
 
@@ -59,7 +60,7 @@ class FidelityMetrics:
 
 
 def platform_specific_force(pose: np.ndarray, acceleration: np.ndarray) -> np.ndarray:
-    """Specific force felt on the platform, head frame, relative to standing: (..., 3, N) time last."""
+    """Specific force at the rotation centre (no lever arm), relative to standing: (..., 3, N) time last."""
     return rotate(pose[..., 3:, :], acceleration[..., :3, :] + STANDING, inverse=True) - STANDING
 
 
@@ -84,10 +85,12 @@ def fidelity_of_signals(
     angular_velocity: np.ndarray,
     vestibular: VestibularModel,
     scales: FidelityScales,
+    head_height_m: float = DEFAULT_HEAD_HEIGHT_M,
 ) -> FidelityMetrics:
     """Metrics from time-last arrays: platform (..., 6, N), commands (..., 3, N); broadcasts over populations."""
     # The vestibular models are linear: perceived(platform) − perceived(command) = perceived(difference).
-    force_error = vestibular.perceive_specific_force_axes(platform_specific_force(pose, acceleration) - specific_force)
+    delivered = head_specific_force(pose, velocity, acceleration, head_height_m)
+    force_error = vestibular.perceive_specific_force_axes(delivered - specific_force)
     platform_rates = platform_angular_velocity(pose, velocity)
     rate_error = vestibular.perceive_angular_velocity_axes(platform_rates - angular_velocity)
     force_thresholds = vestibular.specific_force_thresholds_m_s2
@@ -116,8 +119,9 @@ def fidelity(
     angular_velocity_rad_s: np.ndarray,
     vestibular: VestibularModel | None = None,
     scales: FidelityScales | None = None,
+    head_height_m: float = DEFAULT_HEAD_HEIGHT_M,
 ) -> FidelityMetrics:
-    """Metrics of one washout run against the commanded cue (N, 3) each."""
+    """Metrics of one washout run against the commanded cue (N, 3) each, perceived at the head."""
     vestibular = vestibular or VestibularModel(sample_period_s=trajectory.sample_period_s)
     if abs(vestibular.sample_period_s - trajectory.sample_period_s) > 1e-12:
         raise ValueError(
@@ -132,4 +136,5 @@ def fidelity(
         np.asarray(angular_velocity_rad_s, dtype=float).T,
         vestibular,
         scales or FidelityScales(),
+        head_height_m,
     )

@@ -34,7 +34,8 @@ from pymoo.optimize import minimize
 
 from core.fidelity import OBJECTIVE_NAMES, FidelityMetrics, FidelityScales, fidelity_of_signals
 from core.kinematics import IKSolution, LegViolation, twin_inverse_kinematics
-from core.robot import TwinRobot, default_twin
+from core.perception import DEFAULT_HEAD_HEIGHT_M
+from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
 from core.shaping import ParameterError, require_positive
 from core.vestibular import VestibularModel, VestibularParameters
 from core.washout import WashoutParameters, WashoutSignals, backward_rate, baseline_parameters, design, run_washout
@@ -50,6 +51,11 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "damping": (0.5, 2.0),
 }
 CONSTRAINT_NAMES = ("stroke_excess_m", "tilt_rate_excess_rad_s")
+BOUND_TOLERANCE_FRACTION = 0.01  # of the bound's range: an optimum this close to a bound "sits on" it
+# Tilt coordination counts as switched off when the paper's sustained 0.2 g step (held 10 s) tilts less
+# than this fraction of asin(0.2): the sustained cue is then carried by nothing (issue 14 §4).
+TILT_COORDINATION_OFF_FRACTION = 0.5
+TILT_PROBE_FORCE_G, TILT_PROBE_HOLD_S, TILT_PROBE_SAMPLE_PERIOD_S = 0.2, 10.0, 0.01
 
 
 def paper_square_wave(
@@ -85,7 +91,9 @@ class WashoutTuningProblem(Problem):
         vestibular: VestibularParameters | None = None,
         scales: FidelityScales | None = None,
         bounds: dict[str, tuple[float, float]] | None = None,
+        head_height_m: float = DEFAULT_HEAD_HEIGHT_M,
     ) -> None:
+        self.head_height_m = float(head_height_m)  # perception is judged at the head (core.perception)
         self.baseline = baseline or baseline_parameters()
         self.twin = twin or default_twin()
         self.sample_period_s = float(sample_period_s)
@@ -138,6 +146,7 @@ class WashoutTuningProblem(Problem):
             self.angular_velocity.T,
             self.vestibular,
             self.scales,
+            self.head_height_m,
         )
         return signals, metrics
 
@@ -165,6 +174,29 @@ class WashoutTuningProblem(Problem):
     def _tilt_rate_excess(self, signals: WashoutSignals) -> np.ndarray:
         rate = backward_rate(signals.tilt_command, self.sample_period_s)
         return np.max(np.abs(rate), axis=(-2, -1)) - self.baseline.tilt_rate_limit_rad_s
+
+
+def bounds_hit(problem: WashoutTuningProblem, params: WashoutParameters) -> dict[str, str]:
+    """Which tuned variables of `params` sit on a bound of `problem` ("lower" or "upper")."""
+    hits = {}
+    for index, name in enumerate(problem.variable_names):
+        value = problem.variables_of(params)[index]
+        low, high = problem.xl[index], problem.xu[index]
+        tolerance = BOUND_TOLERANCE_FRACTION * (high - low)
+        if value <= low + tolerance:
+            hits[name] = "lower"
+        elif value >= high - tolerance:
+            hits[name] = "upper"
+    return hits
+
+
+def tilt_coordination_fraction(params: WashoutParameters) -> float:
+    """Tilt reached at the end of the paper's sustained step (0.2 g along y, held 10 s), over asin(0.2)."""
+    dt = TILT_PROBE_SAMPLE_PERIOD_S
+    force = np.zeros((round(TILT_PROBE_HOLD_S / dt), 3))
+    force[:, 1] = TILT_PROBE_FORCE_G * GRAVITY_M_S2
+    signals = run_washout(design(params, dt), force.T, np.zeros_like(force).T)
+    return float(signals.tilt[0, -1] / np.arcsin(TILT_PROBE_FORCE_G))
 
 
 def within_stroke(solutions: dict[str, IKSolution]) -> bool:
@@ -210,12 +242,18 @@ class TuningResult:
     improves_on_baseline: bool  # the compromise is better than the baseline in both objectives
     optimized_within_stroke: bool  # full twin IK of the compromise: in stroke, every rod reaches its rail
     optimized_reachable: bool  # ... and within every other IK limit too (joint cones, conditioning)
+    bounds_hit: dict[str, str]  # tuned variables of the compromise that sit on a bound: widen it
+    tilt_coordination_fraction: float  # sustained-step tilt over asin(f/g) (`tilt_coordination_fraction`)
     pareto_parameters: list[WashoutParameters]
     pareto_objectives: np.ndarray  # (M, 2)
     wall_s: float
     seed: int
     generations: int
     population: int
+
+    @property
+    def tilt_coordination_off(self) -> bool:
+        return self.tilt_coordination_fraction < TILT_COORDINATION_OFF_FRACTION
 
     def to_dict(self) -> dict[str, Any]:
         def summary(objectives: dict[str, float], params: WashoutParameters) -> dict[str, Any]:
@@ -227,6 +265,9 @@ class TuningResult:
             "improves_on_baseline": self.improves_on_baseline,
             "optimized_within_stroke": self.optimized_within_stroke,
             "optimized_reachable": self.optimized_reachable,
+            "bounds_hit": self.bounds_hit,
+            "tilt_coordination_fraction": self.tilt_coordination_fraction,
+            "tilt_coordination_off": self.tilt_coordination_off,
             "pareto_size": len(self.pareto_parameters),
             "pareto_front": self.pareto_objectives.tolist(),
             "wall_s": self.wall_s,
@@ -291,6 +332,8 @@ def tune(
         improves_on_baseline=bool(better[chosen]),
         optimized_within_stroke=in_stroke,
         optimized_reachable=reachable,
+        bounds_hit=bounds_hit(problem, optimized),
+        tilt_coordination_fraction=tilt_coordination_fraction(optimized),
         pareto_parameters=problem.parameters(front_x),
         pareto_objectives=front_f,
         wall_s=wall_s,

@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "server.cli.service_commands",
     "server.cli.falls_commands",
     "server.cli.washout_commands",
+    "server.cli.cueing_commands",
 )
 
 for _module_name in COMMAND_MODULES:

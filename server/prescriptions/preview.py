@@ -4,9 +4,10 @@ It plays the prescription offline through the worker's own batch pipeline (`serv
 cue × soft-start/fade gains → washout (paper §4.1) → command shaping → quintic return to neutral →
 twin IK), then reports, decimated for plotting:
 - the platform motion (stance pose, m and rad);
-- the specific force the patient should feel (the cue) and the one the platform gives
-  (`core.fidelity.platform_specific_force`), each through the otolith model (Formula 14) — the perceived
-  accelerations;
+- the algorithm (`cueing`: classical washout or optimal cueing, issue 14);
+- the specific force the patient should feel (the cue) and the one the platform gives at the patient's
+  head (`core.perception.head_specific_force`, lever arm included), each through the otolith model
+  (Formula 14), and the cued and delivered angular velocity through the canal model (Formula 15);
 - every slider's position against its stroke;
 and the worker's verdict (`check_plan`): the peak use of every limit, or the first limit it would break.
 """
@@ -19,8 +20,8 @@ import numpy as np
 from fastapi import APIRouter, Depends, Request
 from pydantic import ConfigDict, Field
 
-from core.fidelity import platform_specific_force
 from core.kinematics import twin_inverse_kinematics
+from core.perception import head_angular_velocity, head_height_m, head_specific_force
 from core.robot import TwinRobot
 from core.vestibular import VestibularModel
 from server.api_types import MAX_ID, RequestModel
@@ -28,7 +29,7 @@ from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.errors import InvalidFieldError
 from server.patients.service import read_patient
-from server.prescriptions.schemas import EXAMPLE_SEGMENT, Segments
+from server.prescriptions.schemas import EXAMPLE_SEGMENT, Cueing, Segments
 from server.prescriptions.validation import validated_prescription
 from server.realtime.prescription import (
     PrescriptionError,
@@ -38,9 +39,9 @@ from server.realtime.prescription import (
     finite_differences,
     plan_prescription,
     return_ramp,
+    segment_cue,
     segment_cue_poses,
 )
-from server.realtime.ramps import cue_gains
 
 router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
 
@@ -50,31 +51,50 @@ PREVIEW_POINTS = 1200  # per curve: enough for a plot a screen wide
 
 class PreviewRequest(RequestModel):
     segments: Segments
+    cueing: Cueing = "classical"
     patient_id: Annotated[int | None, Field(ge=1, le=MAX_ID, description="Payload for the dynamics check.")] = None
 
     model_config = ConfigDict(json_schema_extra={"examples": [{"segments": [EXAMPLE_SEGMENT]}]})
 
 
-def _timeline(plan: PrescriptionPlan) -> dict[str, np.ndarray]:
-    """Every control tick of the whole prescription: cue (N, 3) ×2 as played, stance pose, velocity, acceleration."""
+def prescription_timeline(plan: PrescriptionPlan) -> dict[str, np.ndarray]:
+    """Every control tick of the whole prescription: cue (N, 3) ×2 as played, stance pose, velocity and
+    acceleration (N, 6) each, and the segment index (N,)."""
     period, config = plan.sample_period_s, plan.config
     previous_pose, previous_velocity = np.zeros(6), np.zeros(6)
-    parts: dict[str, list[np.ndarray]] = {"force": [], "poses": [], "velocity": [], "acceleration": [], "segment": []}
+    names = ("force", "angular", "poses", "velocity", "acceleration", "segment")
+    parts: dict[str, list[np.ndarray]] = {name: [] for name in names}
     for segment in plan.segments:
-        force, _, cue_poses = segment_cue_poses(segment, period, config)
-        force = force * cue_gains(np.arange(len(force)) * period, segment.duration_s, config.soft_start_s,
-                                  config.fade_out_s)[:, None]  # fmt: skip
+        force, angular = segment_cue(segment, period, config)
+        _, _, cue_poses = segment_cue_poses(segment, period, config)
         velocity, acceleration = finite_differences(cue_poses, period, previous_pose, previous_velocity)
         back = return_ramp(cue_poses[-1], velocity[-1], acceleration[-1], period, config)
         poses = np.concatenate([cue_poses, back])
         velocity, acceleration = finite_differences(poses, period, previous_pose, previous_velocity)
         parts["force"].append(np.concatenate([force, np.zeros((len(back), 3))]))
+        parts["angular"].append(np.concatenate([angular, np.zeros((len(back), 3))]))
         parts["poses"].append(poses)
         parts["velocity"].append(velocity)
         parts["acceleration"].append(acceleration)
         parts["segment"].append(np.full(len(poses), segment.index))
         previous_pose, previous_velocity = poses[-1], velocity[-1]
     return {name: np.concatenate(values) for name, values in parts.items()}
+
+
+def perceived_at_head(timeline: dict[str, np.ndarray], sample_period_s: float, head_height_m: float) -> dict:
+    """The cue and what the platform delivers at the head, each through the vestibular models (N, 3)."""
+    poses, velocity, acceleration = timeline["poses"], timeline["velocity"], timeline["acceleration"]
+    delivered_force = head_specific_force(poses.T, velocity.T, acceleration.T, head_height_m).T
+    delivered_rate = head_angular_velocity(poses.T, velocity.T).T
+    model = VestibularModel(sample_period_s=sample_period_s)
+    return {
+        "delivered_specific_force_m_s2": delivered_force,
+        "perceived_cue_m_s2": model.perceive_specific_force(timeline["force"]),
+        "perceived_platform_m_s2": model.perceive_specific_force(delivered_force),
+        "perceived_cue_rate_rad_s": model.perceive_angular_velocity(timeline["angular"]),
+        "perceived_platform_rate_rad_s": model.perceive_angular_velocity(delivered_rate),
+        "platform_rate_rad_s": delivered_rate,
+    }
 
 
 def prescription_preview(
@@ -91,10 +111,10 @@ def prescription_preview(
             "segments", f"{total_s:g} s in all", f"the preview covers at most {PREVIEW_DURATION_MAX_S:g} s"
         )
     period = plan.sample_period_s
-    timeline = _timeline(plan)
-    poses, acceleration = timeline["poses"], timeline["acceleration"]
-    platform_force = platform_specific_force(poses.T, acceleration.T).T
-    otoliths = VestibularModel(sample_period_s=period)
+    timeline = prescription_timeline(plan)
+    poses = timeline["poses"]
+    head_m = head_height_m(plan.patient.height_m if plan.patient else None)
+    perceived = perceived_at_head(timeline, period, head_m)
     rows = np.unique(np.linspace(0, len(poses) - 1, min(PREVIEW_POINTS, len(poses))).round().astype(int))
     # IK is per sample, so solving only the plotted rows gives the same positions for a fraction of the work.
     solutions = twin_inverse_kinematics(twin, poses[rows], check=False)
@@ -120,10 +140,16 @@ def prescription_preview(
         "segment": timeline["segment"][rows].tolist(),
         "platform_position_m": series(poses[:, :3]),
         "platform_angles_rad": series(poses[:, 3:]),
+        "cueing": plan.segments[0].cueing,
+        "head_height_m": head_m,
         "cue_specific_force_m_s2": series(timeline["force"]),
-        "platform_specific_force_m_s2": series(platform_force),
-        "perceived_cue_m_s2": series(otoliths.perceive_specific_force(timeline["force"])),
-        "perceived_platform_m_s2": series(otoliths.perceive_specific_force(platform_force)),
+        # What the platform delivers at the patient's head (lever arm included), and both through the otoliths.
+        "platform_specific_force_m_s2": series(perceived["delivered_specific_force_m_s2"]),
+        "perceived_cue_m_s2": series(perceived["perceived_cue_m_s2"]),
+        "perceived_platform_m_s2": series(perceived["perceived_platform_m_s2"]),
+        "cue_angular_velocity_rad_s": series(timeline["angular"]),
+        "perceived_cue_rate_rad_s": series(perceived["perceived_cue_rate_rad_s"]),
+        "perceived_platform_rate_rad_s": series(perceived["perceived_platform_rate_rad_s"]),
         "slider_position_m": series(sliders),
         "stroke_min_m": np.concatenate([r.stroke_min_m for r in robots]).tolist(),
         "stroke_max_m": np.concatenate([r.stroke_max_m for r in robots]).tolist(),
@@ -137,7 +163,7 @@ def preview_prescription(
 ) -> dict[str, Any]:
     """Plots-ready preview of the segments as the robot would play them, and whether the robot accepts them."""
     prescription = validated_prescription(
-        [s.model_dump() for s in data.segments], limits=request.app.state.robot_limits
+        [s.model_dump() for s in data.segments], limits=request.app.state.robot_limits, cueing=data.cueing
     )
     patient = None
     if data.patient_id is not None:

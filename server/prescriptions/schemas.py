@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import ConfigDict, Field
 
@@ -30,12 +30,18 @@ class SegmentIn(RequestModel):
 
 
 Segments = Annotated[list[SegmentIn], Field(min_length=1, max_length=50)]
+Cueing = Annotated[
+    Literal["classical", "optimal"],
+    Field(description="Motion cueing: the paper's classical washout, or optimal cueing planned over the whole "
+          "prescription (core.optimal_cueing)."),
+]  # fmt: skip
 
 
 class PrescriptionCreate(RequestModel):
     patient_id: int = Field(ge=1, le=MAX_ID)
     name: Name
     segments: Segments
+    cueing: Cueing = "classical"
     note: LongText = ""
 
     model_config = ConfigDict(
@@ -49,6 +55,7 @@ class PrescriptionRevise(RequestModel):
     """A new version: the segments replace the previous version's; earlier versions stay as they were."""
 
     segments: Segments
+    cueing: Cueing = "classical"
     name: Name | None = None
     note: LongText = ""
 

@@ -14,8 +14,8 @@ from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise,
 from server.prescriptions.validation import validated_prescription
 
 
-def _content(segments: list[SegmentIn], limits: dict[str, float]) -> dict[str, object]:
-    return validated_prescription([s.model_dump() for s in segments], limits=limits)
+def _content(segments: list[SegmentIn], limits: dict[str, float], cueing: str) -> dict[str, object]:
+    return validated_prescription([s.model_dump() for s in segments], limits=limits, cueing=cueing)
 
 
 def get_prescription(*, session: Session, prescription_id: int) -> Prescription:
@@ -45,7 +45,7 @@ def create_prescription(
     *, session: Session, data: PrescriptionCreate, limits: dict[str, float], actor_id: int
 ) -> Prescription:
     find_patient(session=session, patient_id=data.patient_id)
-    content = _content(data.segments, limits)
+    content = _content(data.segments, limits, data.cueing)
     prescription = Prescription(patient_id=data.patient_id, name=data.name, latest_version=1, created_by_id=actor_id)
     prescription.versions.append(
         PrescriptionVersion(version=1, content=content, note=data.note, created_by_id=actor_id)
@@ -68,7 +68,7 @@ def revise_prescription(
     *, session: Session, prescription_id: int, data: PrescriptionRevise, limits: dict[str, float], actor_id: int
 ) -> Prescription:
     prescription = get_prescription(session=session, prescription_id=prescription_id)
-    content = _content(data.segments, limits)
+    content = _content(data.segments, limits, data.cueing)
     prescription.latest_version += 1
     if data.name is not None:
         prescription.name = data.name

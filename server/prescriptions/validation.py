@@ -87,8 +87,10 @@ def _validated_limits(field: str, limits: dict[str, float], robot: dict[str, flo
     return dict(limits)
 
 
-def validated_prescription(segments: list[dict[str, Any]], *, limits: dict[str, float]) -> dict[str, Any]:
-    """The prescription as stored and run: `{"segments": [{cue, duration_s, washout, limits}, ...]}`."""
+def validated_prescription(
+    segments: list[dict[str, Any]], *, limits: dict[str, float], cueing: str = "classical"
+) -> dict[str, Any]:
+    """The prescription as stored and run: `{"segments": [{cue, duration_s, washout, limits}, ...], "cueing"}`."""
     checked = []
     for index, segment in enumerate(segments):
         field = f"segments[{index}]"
@@ -101,4 +103,4 @@ def validated_prescription(segments: list[dict[str, Any]], *, limits: dict[str, 
                 "limits": _validated_limits(f"{field}.limits", segment.get("limits") or {}, limits),
             }
         )
-    return {"segments": checked}
+    return {"segments": checked, "cueing": cueing}

@@ -304,16 +304,21 @@ class TickPipeline:
         force, angular = segment.cue.step()
         time_s = self.segment_tick * self.period_s
         gain = cue_gain(time_s, plan.duration_s, self.config.soft_start_s, self.config.fade_out_s)
+        resume_gain = 1.0
         if self.resume_tick is not None:
-            gain = min(
-                gain, smoothstep5((self.segment_tick - self.resume_tick) * self.period_s / self.config.soft_start_s)
-            )
+            resume_gain = smoothstep5((self.segment_tick - self.resume_tick) * self.period_s / self.config.soft_start_s)
+            gain = min(gain, resume_gain)
         self._cue_force[:] = force
         self._cue_angular[:] = angular
         np.multiply(force, gain, out=self._scaled_force)
         np.multiply(angular, gain, out=self._scaled_angular)
-        washed = segment.washout.step(self._scaled_force, self._scaled_angular)
-        self._candidate[:] = segment.shaper.step(washed[:6])
+        if plan.planned_poses is not None:
+            # Optimal cueing plays the checked plan (its gains are in it); after a resume, which starts from
+            # neutral, it is blended in from neutral over the soft start.
+            np.multiply(plan.planned_poses[self.segment_tick], resume_gain, out=self._candidate)
+        else:
+            washed = segment.washout.step(self._scaled_force, self._scaled_angular)
+            self._candidate[:] = segment.shaper.step(washed[:6])
         self.segment_tick += 1
         if self.segment_tick >= plan.cue_samples:
             self.supervisor.segment_finished(last=self.segment_index == len(self.segments) - 1)

@@ -1,18 +1,20 @@
 """Prescriptions: parse and validate them, and check them offline through the batch pipeline.
 
 A prescription is a JSON-able dict `{"segments": [{"cue", "duration_s", "washout"?, "shaping"?,
-"limits"?}], "seed"?}`. The worker plays each segment as: cue × gain (soft start, full, fade out) →
-washout → command shaping → stance pose, then a quintic return to neutral (`ramps`). Before any motion,
-`check_prescription` runs exactly that timeline through the batch front ends (`washout_batch`,
-`shape_batch`, `twin_inverse_kinematics`, `TwinInverseDynamics`) and refuses the prescription at the
-first sample that breaks a limit, naming the segment, the time in it, the limit and the value.
+"limits"?}], "seed"?, "cueing"?}`. With `"cueing": "classical"` (the default) the worker plays each
+segment as: cue × gain (soft start, full, fade out) → washout → command shaping → stance pose; with
+`"optimal"` the stance trajectory of each segment is planned here, at load time, from the whole cue
+(`core.optimal_cueing`), and the worker plays it. Either way a quintic return to neutral (`ramps`)
+follows. Before any motion, `check_prescription` runs exactly that timeline through the batch front
+ends (`washout_batch`, `shape_batch`, `twin_inverse_kinematics`, `TwinInverseDynamics`) and refuses the
+prescription at the first sample that breaks a limit, naming the segment, the time in it, the limit and the value.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -22,7 +24,9 @@ from core.dynamics import PayloadModel, TwinInverseDynamics
 from core.errors import InvalidValueError
 from core.falls import FallDetectorConfig
 from core.kinematics import LegViolation, twin_inverse_kinematics
+from core.optimal_cueing import CueingWorkspace, OptimalCueingParameters, OptimalCueingPlanner
 from core.patient import PatientParameters
+from core.perception import head_height_m
 from core.robot import TwinRobot
 from core.shaping import CommandShaper, ShapingParameters
 from core.washout import WashoutParameters, paper_tilt_parameters, washout_batch
@@ -33,6 +37,7 @@ from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import LIMIT_UNITS, LimitCode
 
 SEGMENT_COUNT_MAX = 100
+CUEING_ALGORITHMS = ("classical", "optimal")
 SEGMENT_DURATION_MAX_S = 3600.0
 
 
@@ -110,6 +115,8 @@ class SegmentPlan:
     motion_limits: SessionLimits  # `limits` less the stop margin: what normal motion must respect
     seed: int
     cue_samples: int  # duration plus fade out, in ticks
+    cueing: str = "classical"
+    planned_poses: np.ndarray | None = None  # optimal cueing: the stance trajectory (cue_samples, 6)
 
 
 @dataclass(frozen=True)
@@ -170,12 +177,15 @@ def plan_prescription(
     period = 1.0 / control_rate_hz
     if not isinstance(prescription, Mapping):
         raise PrescriptionError("prescription", prescription, "must be an object with 'segments'")
-    unknown = sorted(set(prescription) - {"segments", "seed", "name", "notes"})
+    unknown = sorted(set(prescription) - {"segments", "seed", "name", "notes", "cueing"})
     if unknown:
         raise PrescriptionError(unknown[0], prescription[unknown[0]], "unknown prescription field")
     seed = prescription.get("seed", 0)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise PrescriptionError("seed", seed, "must be an integer")
+    cueing = prescription.get("cueing", "classical")
+    if cueing not in CUEING_ALGORITHMS:
+        raise PrescriptionError("cueing", cueing, f"must be one of {list(CUEING_ALGORITHMS)}")
     segments = prescription.get("segments")
     if not isinstance(segments, list) or not 1 <= len(segments) <= SEGMENT_COUNT_MAX:
         raise PrescriptionError("segments", segments, f"must be a list of 1 to {SEGMENT_COUNT_MAX} segments")
@@ -219,21 +229,50 @@ def plan_prescription(
                 motion_limits=limits.with_margin(config.limit_margin_fraction, config.stroke_margin_m),
                 seed=seed + index,
                 cue_samples=round((float(duration) + config.fade_out_s) * control_rate_hz),
+                cueing=cueing,
             )
         )
     setup = None if patient is None else PatientSetup.from_dict(patient)
+    if cueing == "optimal":
+        plans = _optimal_segments(plans, twin, period, config, setup)
     return PrescriptionPlan(tuple(plans), control_rate_hz, config, setup)
 
 
-def segment_cue_poses(segment: SegmentPlan, sample_period_s: float, config: SupervisorConfig) -> tuple[np.ndarray, ...]:
-    """The segment's cue (N, 3) ×2 and shaped stance poses (N, 6) from rest: the batch twin of the
-    worker's CUE phase."""
+def _optimal_segments(
+    segments: list[SegmentPlan], twin: TwinRobot, period: float, config: SupervisorConfig, patient: PatientSetup | None
+) -> list[SegmentPlan]:
+    """Plan every segment's stance trajectory from its whole cue (as played: × soft-start/fade gains), within
+    the limits normal motion keeps, perceived at this patient's head."""
+    params = OptimalCueingParameters(head_height_m=head_height_m(patient.height_m if patient else None))
+    planned = []
+    for segment in segments:
+        force, angular = segment_cue(segment, period, config)
+        limits = segment.motion_limits
+        workspace = CueingWorkspace(twin, limits.motion, limits.stroke_min_m, limits.stroke_max_m)
+        plan = OptimalCueingPlanner(workspace, params).plan(force, angular, period)
+        planned.append(replace(segment, planned_poses=plan.pose))
+    return planned
+
+
+def segment_cue(segment: SegmentPlan, sample_period_s: float, config: SupervisorConfig) -> tuple[np.ndarray, ...]:
+    """The segment's cue (N, 3) ×2 as the worker plays it: × soft-start and fade-out gains."""
     cue = cue_from_spec(segment.cue_spec, sample_period_s, segment.seed)
     force, angular = cue.generate(segment.cue_samples * sample_period_s)
     gains = cue_gains(
         np.arange(len(force)) * sample_period_s, segment.duration_s, config.soft_start_s, config.fade_out_s
     )
-    trajectory = washout_batch(segment.washout, sample_period_s, force * gains[:, None], angular * gains[:, None])
+    return force * gains[:, None], angular * gains[:, None]
+
+
+def segment_cue_poses(segment: SegmentPlan, sample_period_s: float, config: SupervisorConfig) -> tuple[np.ndarray, ...]:
+    """The segment's cue (N, 3) ×2 and stance poses (N, 6) from rest: the batch twin of the worker's CUE
+    phase (classical: washout and command shaping; optimal: the planned trajectory)."""
+    cue = cue_from_spec(segment.cue_spec, sample_period_s, segment.seed)
+    force, angular = cue.generate(segment.cue_samples * sample_period_s)
+    if segment.planned_poses is not None:
+        return force, angular, segment.planned_poses
+    played_force, played_angular = segment_cue(segment, sample_period_s, config)
+    trajectory = washout_batch(segment.washout, sample_period_s, played_force, played_angular)
     poses = CommandShaper(segment.shaping, sample_period_s).shape_batch(trajectory.pose)
     return force, angular, poses
 

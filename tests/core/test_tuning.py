@@ -90,3 +90,33 @@ def test_damping_can_be_tuned_and_bad_settings_are_refused() -> None:
     with pytest.raises(ParameterError, match=r"bounds\.tilt_break_rad_s"):
         WashoutTuningProblem(bounds={"tilt_break_rad_s": (2.0, 1.0)})
     assert problem.baseline == baseline_parameters()
+
+
+def test_an_optimum_on_a_bound_is_reported() -> None:
+    """Issue 14 defect: the 100 × 100 optimum sat on ω_a′ = 0.02 and ω_h = 0.05 without a word."""
+    from core.tuning import bounds_hit
+
+    problem = WashoutTuningProblem(bounds={"tilt_break_rad_s": (0.05, 5.0)})
+    on_bounds = problem.parameters(np.array([2.7, 0.02, 0.05]))[0]
+    hits = bounds_hit(problem, on_bounds)
+    assert hits == {"translational_first_order_break_rad_s": "lower", "tilt_break_rad_s": "lower"}
+    assert bounds_hit(problem, problem.parameters(np.array([2.0, 0.5, 0.4]))[0]) == {}
+
+
+def test_tilt_coordination_switched_off_is_flagged() -> None:
+    """The issue's tuned set tilts 0.018 rad for the paper's 0.2 g step instead of 0.201 rad."""
+    from core.tuning import tilt_coordination_fraction
+    from core.washout import paper_tilt_parameters
+
+    tuned = WashoutTuningProblem().parameters(np.array([2.7, 0.02, 0.05]))[0]
+    assert tilt_coordination_fraction(tuned) < 0.15
+    assert tilt_coordination_fraction(paper_tilt_parameters()) == pytest.approx(1.0, abs=0.01)
+
+
+def test_tuning_result_says_which_bounds_and_whether_tilt_coordination_is_off(result) -> None:
+    summary = result.to_dict()
+    assert isinstance(summary["bounds_hit"], dict)
+    assert summary["tilt_coordination_fraction"] == pytest.approx(
+        __import__("core.tuning", fromlist=["x"]).tilt_coordination_fraction(result.optimized)
+    )
+    assert summary["tilt_coordination_off"] is (summary["tilt_coordination_fraction"] < 0.5)

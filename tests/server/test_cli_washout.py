@@ -51,3 +51,12 @@ def test_tune_json_and_figure_15_plot(tmp_path: Path) -> None:
 def test_tune_refuses_an_empty_population() -> None:
     outcome = runner.invoke(app, ["tune", "--population", "0", "--generations", "1", "--json"])
     assert outcome.exit_code == 2 and "population" in json.loads(outcome.stdout)["error"]
+
+
+def test_washout_flags_the_section_5_tilt_rate_above_the_perception_threshold() -> None:
+    """Issue 14 defect: the paper's tilt peaks at 0.147 rad/s (8.4 °/s) against a 3 °/s roll threshold."""
+    outcome = runner.invoke(app, ["washout", "--json"])
+    assert outcome.exit_code == 0, outcome.output
+    data = json.loads(outcome.stdout)
+    assert abs(data["tilt_rate_threshold_rad_s"] - math.radians(3.0)) < 1e-12
+    assert data["tilt_rate_perceptible"] is True

@@ -1,0 +1,71 @@
+"""A prescription with `"cueing": "optimal"` (issue 14 §3–4): planned at load time, honoured by the worker's
+own offline check at every sample, and played by the tick pipeline as planned."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from core.perception import tilt_rate_check
+from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
+from server.hal.kinematic import KinematicHal
+from server.realtime.pipeline import TickPipeline
+from server.realtime.prescription import (
+    PrescriptionError,
+    PrescriptionRejected,
+    check_plan,
+    check_prescription,
+    plan_prescription,
+)
+from server.realtime.supervisor import SupervisorConfig
+from server.realtime.telemetry import SupervisorState
+
+# The paper's §4.3 lateral step (0.2 g, held 10 s): the classical washout's plan breaks the twin's limits.
+PAPER_STEP = {"kind": "step", "axis": "y", "final_m_s2": 0.2 * GRAVITY_M_S2, "end_time_s": 10.0}
+
+
+@pytest.fixture(scope="module")
+def twin() -> TwinRobot:
+    return default_twin()
+
+
+@pytest.fixture(scope="module")
+def optimal_step_plan(twin: TwinRobot):
+    return plan_prescription({"cueing": "optimal", "segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}, twin)
+
+
+def test_classical_refuses_the_paper_step_that_optimal_cueing_plans_within_every_limit(twin, optimal_step_plan) -> None:
+    with pytest.raises(PrescriptionRejected):
+        check_prescription({"segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}, twin)
+    report = check_plan(optimal_step_plan, twin)  # the worker's own check: raises at the first breach
+    assert report.samples > 14_000 and max(report.peak_use.values()) <= 1.0
+    poses = optimal_step_plan.segments[0].planned_poses
+    assert poses is not None and np.max(poses[:, 3]) > 0.05  # it tilts: the sustained cue is carried by gravity
+    check = tilt_rate_check(poses, np.gradient(poses, 0.001, axis=0), 0.001)
+    assert not check.above_threshold, check
+
+
+def test_the_pipeline_plays_the_planned_trajectory(twin, optimal_step_plan) -> None:
+    hal = KinematicHal(twin, 0.001, communication_timeout_s=60.0)
+    hal.configure()
+    pipeline = TickPipeline(twin, hal, 1000, SupervisorConfig(), lambda *_: None)
+    pipeline.load(optimal_step_plan)
+    pipeline.heartbeat()
+    pipeline.start()
+    planned = optimal_step_plan.segments[0].planned_poses
+    played = []
+    for _ in range(8000):
+        pipeline.heartbeat()
+        pipeline.tick(0)
+        if pipeline.supervisor.phase.name == "CUE" and pipeline.segment_tick > 0:
+            played.append((pipeline.segment_tick - 1, pipeline.pose.copy()))
+        assert pipeline.supervisor.state is SupervisorState.RUNNING
+    assert len(played) > 3000
+    ticks = np.array([tick for tick, _ in played])
+    assert np.max(np.abs(np.array([pose for _, pose in played]) - planned[ticks])) < 1e-12
+
+
+def test_an_unknown_cueing_algorithm_is_refused_naming_the_field(twin) -> None:
+    with pytest.raises(PrescriptionError) as refused:
+        plan_prescription({"cueing": "psychic", "segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}, twin)
+    assert refused.value.field == "cueing" and "optimal" in refused.value.limit
