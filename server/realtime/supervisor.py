@@ -72,6 +72,8 @@ class SupervisorConfig:
     # margin (they are checked against the robot's own limits), so braking from a limit hit is possible.
     limit_margin_fraction: float = 0.05
     stroke_margin_m: float = 0.01
+    # Normal motion keeps this much more clearance between the twin's parts than the robot's own margin.
+    clearance_margin_m: float = 0.02
 
     def __post_init__(self) -> None:
         for item in fields(self):
