@@ -20,16 +20,22 @@ from __future__ import annotations
 import enum
 import functools
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numba
 import numpy as np
 
-from core.kinematics.ik import IKSolution, LegViolation, PoseCollisions
+from core.kinematics.ik import IK_CHUNK_POSES, IK_THREADS, IKSolution, LegViolation, PoseCollisions
 from core.kinematics.rotations import yaw_matrix
 from core.kinematics.twin import twin_inverse_kinematics, twin_platform_poses
 from core.robot import TwinRobot
+
+NOTHING_CLOSER = "no pair closer than the reported bound"
+# The twin IK needs the exact clearance only near the margins (the prescription check's stop margin is
+# 20 mm more); farther than this it reports the bound, which lets the kernel skip most pairs.
+IK_EXACT_BELOW_M = 0.10
 
 
 class PartKind(enum.IntEnum):
@@ -277,25 +283,25 @@ def twin_segments_into(
 
 @numba.njit(cache=True, nogil=True)
 def min_clearance_kernel(
-    segments: np.ndarray, radius: np.ndarray, pairs: np.ndarray, boxes: np.ndarray
+    segments: np.ndarray, radius: np.ndarray, pairs: np.ndarray, boxes: np.ndarray, exact_below: float
 ) -> tuple[float, int]:
-    """(smallest clearance, its pair index) over `pairs` for one pose's segments (P, 2, 3). Exact: a pair
-    is skipped only when its bounding boxes are already farther apart than the closest pair so far.
+    """(smallest clearance, its pair index) over `pairs` for one pose's segments (P, 2, 3), exact where it
+    is below `exact_below` (else `exact_below` and pair −1: nothing is that close). A pair is skipped only
+    when its bounding boxes are already farther apart than the closest pair so far (or `exact_below`).
     `boxes` is (P, 6) scratch. NaN segments (a rod that cannot reach) are skipped."""
     for part in range(segments.shape[0]):
         for i in range(3):
-            low = min(segments[part, 0, i], segments[part, 1, i])
-            high = max(segments[part, 0, i], segments[part, 1, i])
-            boxes[part, i] = low - radius[part]
-            boxes[part, 3 + i] = high + radius[part]
-    best = np.inf
+            boxes[part, i] = min(segments[part, 0, i], segments[part, 1, i])
+            boxes[part, 3 + i] = max(segments[part, 0, i], segments[part, 1, i])
+    best = exact_below
     best_pair = -1
     for k in range(pairs.shape[0]):
         a, b = pairs[k, 0], pairs[k, 1]
+        # The segments' boxes' gap bounds their distance from below, so the capsules' clearance too.
         gap = 0.0
         for i in range(3):
             gap = max(gap, boxes[b, i] - boxes[a, 3 + i], boxes[a, i] - boxes[b, 3 + i])
-        if gap >= best:
+        if gap - radius[a] - radius[b] >= best:
             continue
         clearance = segment_distance(segments[a], segments[b]) - radius[a] - radius[b]
         if clearance < best:
@@ -322,6 +328,7 @@ def _batch_clearance(
     joints_world: np.ndarray,  # (N, 2, 6, 3)
     sliders: np.ndarray,  # (N, 2, 6)
     all_pairs: bool,
+    exact_below: float,
     clearance_out: np.ndarray,  # (N,)
     pair_out: np.ndarray,  # (N,)
     pair_clearance_out: np.ndarray,  # (N, K) when all_pairs
@@ -355,7 +362,7 @@ def _batch_clearance(
                     best, best_pair = value, k
             clearance_out[pose], pair_out[pose] = best, best_pair
         else:
-            clearance_out[pose], pair_out[pose] = min_clearance_kernel(segments, radius, pairs, boxes)
+            clearance_out[pose], pair_out[pose] = min_clearance_kernel(segments, radius, pairs, boxes, exact_below)
 
 
 # --- The model ------------------------------------------------------------------------------------------
@@ -435,51 +442,73 @@ class TwinClearance:
         sliders = np.ascontiguousarray(np.stack([solutions[s].slider_positions_m for s in sides], axis=1))
         return PoseInputs(positions, rotations, joints_world, sliders)
 
-    def _run(self, pairs: np.ndarray, all_pairs: bool, inputs: PoseInputs) -> tuple[np.ndarray, ...]:
+    def _run(
+        self, pairs: np.ndarray, all_pairs: bool, inputs: PoseInputs, exact_below: float = np.inf
+    ) -> tuple[np.ndarray, ...]:
         count = len(inputs.positions)
         clearance = np.empty(count)
         closest = np.empty(count, dtype=np.int64)
         per_pair = np.empty((count if all_pairs else 0, len(pairs)))
         t = self.table
-        _batch_clearance(
-            t.kind,
-            t.robot,
-            t.leg,
-            t.local,
-            t.half_length,
-            t.radius,
-            np.ascontiguousarray(pairs),
-            self.rail_y,
-            self.rail_z,
-            self.base_yaw,
-            self.base_origin,
-            inputs.positions,
-            inputs.rotations,
-            inputs.joints_world,
-            inputs.sliders,
-            all_pairs,
-            clearance,
-            closest,
-            per_pair,
-        )
+        pairs = np.ascontiguousarray(pairs)
+
+        def run_chunk(start: int) -> None:
+            chunk = slice(start, start + IK_CHUNK_POSES)
+            _batch_clearance(
+                t.kind,
+                t.robot,
+                t.leg,
+                t.local,
+                t.half_length,
+                t.radius,
+                pairs,
+                self.rail_y,
+                self.rail_z,
+                self.base_yaw,
+                self.base_origin,
+                inputs.positions[chunk],
+                inputs.rotations[chunk],
+                inputs.joints_world[chunk],
+                inputs.sliders[chunk],
+                all_pairs,
+                exact_below,
+                clearance[chunk],
+                closest[chunk],
+                per_pair[chunk],
+            )
+
+        starts = range(0, count, IK_CHUNK_POSES)
+        if len(starts) > 1 and IK_THREADS > 1:  # the kernel releases the GIL: chunks run on both cores
+            with ThreadPoolExecutor(IK_THREADS) as pool:
+                list(pool.map(run_chunk, starts))
+        else:
+            for start in starts:
+                run_chunk(start)
         return clearance, closest, per_pair
 
     def _pair_clearances(self, pairs: np.ndarray, inputs: PoseInputs) -> np.ndarray:
         return self._run(pairs, True, inputs)[2]
 
     def from_solutions(
-        self, platform_poses: dict[str, tuple[np.ndarray, np.ndarray]], solutions: dict[str, IKSolution]
+        self,
+        platform_poses: dict[str, tuple[np.ndarray, np.ndarray]],
+        solutions: dict[str, IKSolution],
+        *,
+        exact_below_m: float = np.inf,
     ) -> ClearanceResult:
-        """Smallest clearance per pose from the twin IK's own results (no second IK)."""
-        clearance, closest, _ = self._run(self.table.pairs, False, self.inputs_from(platform_poses, solutions))
+        """Smallest clearance per pose from the twin IK's own results (no second IK). It is exact where it
+        is below `exact_below_m`; elsewhere it is that bound (pair name `NOTHING_CLOSER`), which is faster."""
+        inputs = self.inputs_from(platform_poses, solutions)
+        clearance, closest, _ = self._run(self.table.pairs, False, inputs, exact_below_m)
         return self._result(clearance, closest)
 
     def _result(self, clearance: np.ndarray, closest: np.ndarray) -> ClearanceResult:
-        # The pose-invariant platform pair joins the per-pose minimum as the last name.
-        names = (*self.table.pair_names, self.platform_pair_name)
+        # The pose-invariant platform pair joins the per-pose minimum; "nothing closer" is the last name.
+        names = (*self.table.pair_names, self.platform_pair_name, NOTHING_CLOSER)
+        closest = np.where(closest < 0, len(names) - 1, closest)
         platform_closer = self.platform_clearance_m < clearance
         clearance = np.where(platform_closer, self.platform_clearance_m, clearance)
-        closest = np.where(platform_closer, len(names) - 1, closest)
+        closest = np.where(platform_closer, len(names) - 2, closest)
         return ClearanceResult(clearance, closest, names, self.clearance_min_m)
 
     def clearance(self, stance_poses: np.ndarray) -> ClearanceResult:
@@ -532,7 +561,8 @@ def flag_collisions(
     solutions: dict[str, IKSolution],
 ) -> dict[str, IKSolution]:
     """The twin IK's solutions with COLLISION set on every leg of both robots where parts collide."""
-    result = twin_clearance(twin).from_solutions(platform_poses, solutions)
+    model = twin_clearance(twin)
+    result = model.from_solutions(platform_poses, solutions, exact_below_m=model.clearance_min_m + IK_EXACT_BELOW_M)
     collisions = PoseCollisions(result.clearance_m, result.closest_pair, result.pair_names, result.clearance_min_m)
     flagged = {}
     colliding = result.colliding & np.isfinite(result.clearance_m)

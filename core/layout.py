@@ -41,7 +41,14 @@ from core.clearance import min_clearance
 from core.dynamics import PayloadModel, TwinInverseDynamics, paper_step_trajectory
 from core.errors import InvalidValueError
 from core.kinematics import UnreachablePoseError, twin_inverse_kinematics
-from core.robot import SSPRobot, TwinRobot, paper_robot, symmetric_placements
+from core.robot import (
+    DEFAULT_BASE_OFFSET_Y_M,
+    DEFAULT_FEET_APART_M,
+    SSPRobot,
+    TwinRobot,
+    paper_robot,
+    symmetric_placements,
+)
 from core.workspace import axis_ranges, stance_reachability
 
 Config.warnings["not_compiled"] = False
@@ -59,6 +66,13 @@ UNREACHABLE_FORCE_N = 1e5  # a scenario the layout cannot play counts as this pe
 VARIABLE_NAMES = ("base_offset_y_m", "stagger_x_m", "base_yaw_rad", "feet_apart_m", "mirrored")
 LOWER = np.array([0.3, 0.0, -math.radians(20.0), FEET_APART_RANGE_M[0], 0.0])
 UPPER = np.array([1.2, 0.6, math.radians(20.0), FEET_APART_RANGE_M[1], 1.0])
+STAGGER_MAX_M = UPPER[1]
+# The foot plate's arm from its platform centre: longer is a structural problem (and loads the drives with
+# the patient's moment); a stated assumption, not from the paper.
+CANTILEVER_MAX_M = 0.75
+# Every gap at neutral at least this wide: the sessions keep the clearance margin plus a 20 mm stop margin
+# (25 mm) everywhere, and gaps that never change (sliders on neighbouring rails) need assembly tolerance.
+NEUTRAL_CLEARANCE_MIN_M = 0.05
 
 
 class LayoutSearchError(InvalidValueError):
@@ -91,6 +105,14 @@ class LayoutCandidate:
         data = asdict(self)
         data["base_yaw_deg"] = math.degrees(self.base_yaw_rad)
         return data
+
+    def vector(self) -> np.ndarray:
+        return np.array(
+            [self.base_offset_y_m, self.stagger_x_m, self.base_yaw_rad, self.feet_apart_m, float(self.mirrored)]
+        )
+
+
+DEFAULT_LAYOUT = LayoutCandidate(DEFAULT_BASE_OFFSET_Y_M, 0.0, 0.0, DEFAULT_FEET_APART_M, True)
 
 
 @dataclass(frozen=True)
@@ -200,10 +222,16 @@ def objectives_of(metrics: LayoutMetrics | None) -> np.ndarray:
 
 
 class LayoutProblem(Problem):
-    """pymoo problem over `VARIABLE_NAMES`; constraint: a layout must stand clear at neutral."""
+    """pymoo problem over `VARIABLE_NAMES`; constraints: every gap at neutral at least
+    NEUTRAL_CLEARANCE_MIN_M, the foot plates within CANTILEVER_MAX_M of their platform centres.
+    `stagger_max_m` = 0 keeps the layouts symmetric about the sagittal plane."""
 
-    def __init__(self, robot: SSPRobot, evaluate: Callable[[TwinRobot], LayoutMetrics | None]) -> None:
-        super().__init__(n_var=len(VARIABLE_NAMES), n_obj=len(OBJECTIVE_NAMES), n_ieq_constr=1, xl=LOWER, xu=UPPER)
+    def __init__(
+        self, robot: SSPRobot, evaluate: Callable[[TwinRobot], LayoutMetrics | None], stagger_max_m: float = 0.0
+    ) -> None:
+        upper = UPPER.copy()
+        upper[1] = stagger_max_m
+        super().__init__(n_var=len(VARIABLE_NAMES), n_obj=len(OBJECTIVE_NAMES), n_ieq_constr=2, xl=LOWER, xu=upper)
         self.robot = robot
         self._evaluate_layout = evaluate
         self.evaluated: list[tuple[LayoutCandidate, LayoutMetrics | None]] = []
@@ -215,7 +243,15 @@ class LayoutProblem(Problem):
             metrics = self._evaluate_layout(candidate.twin(self.robot))
             self.evaluated.append((candidate, metrics))
             objectives.append(objectives_of(metrics))
-            constraints.append([0.0 if metrics is not None else 1.0])
+            if metrics is None:
+                constraints.append([1.0, 1.0])
+            else:
+                constraints.append(
+                    [
+                        NEUTRAL_CLEARANCE_MIN_M - metrics.neutral_clearance_m,
+                        metrics.cantilever_m - CANTILEVER_MAX_M,
+                    ]
+                )
         out["F"] = np.array(objectives)
         out["G"] = np.array(constraints)
 
@@ -225,6 +261,7 @@ class LayoutResult:
     pareto: list[tuple[LayoutCandidate, LayoutMetrics]]
     recommended: int  # index into `pareto`
     reference: LayoutMetrics | None  # today's default layout
+    reference_layout: LayoutCandidate | None
     evaluations: int
     wall_s: float
     seed: int
@@ -235,7 +272,9 @@ class LayoutResult:
         return {
             "pareto": [{"layout": c.to_dict(), "metrics": m.to_dict()} for c, m in self.pareto],
             "recommended": self.recommended,
-            "reference": None if self.reference is None else self.reference.to_dict(),
+            "reference": None
+            if self.reference is None or self.reference_layout is None
+            else {"layout": self.reference_layout.to_dict(), "metrics": self.reference.to_dict()},
             "evaluations": self.evaluations,
             "wall_s": self.wall_s,
             "seed": self.seed,
@@ -255,7 +294,7 @@ def recommend(pareto: list[tuple[LayoutCandidate, LayoutMetrics]], reference: La
             for i, axis in enumerate(CLINICAL_AXES)
         ]
         worst = min(metrics.symmetric_reach(axis) / s for axis, s in zip(CLINICAL_AXES, scale, strict=True))
-        return (round(worst, 3), round(metrics.volume_fraction, 3), -metrics.peak_force_n)
+        return (round(worst, 2), round(metrics.volume_fraction, 2), -metrics.peak_force_n)  # 1 % resolution
 
     return max(range(len(pareto)), key=lambda index: key(pareto[index]))
 
@@ -272,23 +311,31 @@ class _Progress(Callback):
 def layout_search(
     *,
     robot: SSPRobot | None = None,
-    reference: TwinRobot | None = None,
+    reference: LayoutCandidate | None = DEFAULT_LAYOUT,
     population: int = 24,
     generations: int = 8,
     seed: int = 1,
+    stagger_max_m: float = 0.0,
     progress: Callable[[int], None] | None = None,
     evaluate: Callable[[TwinRobot], LayoutMetrics | None] = evaluate_layout,
 ) -> LayoutResult:
-    """NSGA-II over the placement; returns the feasible Pareto set and the recommended layout."""
+    """NSGA-II over the placement; returns the feasible Pareto set and the recommended layout. The first
+    generation holds the `reference` layout (today's default), so that the set contains it or better."""
     for name, value in (("population", population), ("generations", generations)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 2:
             raise LayoutSearchError(name, value, "must be an integer >= 2")
+    if not 0.0 <= stagger_max_m <= STAGGER_MAX_M:
+        raise LayoutSearchError("stagger_max_m", stagger_max_m, f"must be in [0, {STAGGER_MAX_M:g}] m")
     robot = robot or paper_robot()
-    problem = LayoutProblem(robot, evaluate)
+    problem = LayoutProblem(robot, evaluate, stagger_max_m)
+    rng = np.random.default_rng(seed)
+    first = problem.xl + rng.uniform(0.0, 1.0, (population, len(VARIABLE_NAMES))) * (problem.xu - problem.xl)
+    if reference is not None:
+        first[0] = np.clip(reference.vector(), problem.xl, problem.xu)
     started = time.perf_counter()
     result = minimize(
         problem,
-        NSGA2(pop_size=population, eliminate_duplicates=True),
+        NSGA2(pop_size=population, sampling=first, eliminate_duplicates=True),
         ("n_gen", generations),
         seed=seed,
         callback=_Progress(progress or (lambda _steps: None)),
@@ -296,7 +343,7 @@ def layout_search(
     )
     wall_s = time.perf_counter() - started
     front = np.atleast_2d(result.opt.get("X"))
-    feasible = np.atleast_2d(result.opt.get("G"))[:, 0] <= 0.0
+    feasible = np.all(np.atleast_2d(result.opt.get("G")) <= 0.0, axis=1)
     pareto = []
     seen = set()
     for row in front[feasible]:
@@ -309,11 +356,12 @@ def layout_search(
     if not pareto:
         raise RuntimeError("the layout search found no collision-free layout; raise --population or --generations")
     pareto.sort(key=lambda item: (item[0].base_offset_y_m, item[0].stagger_x_m))
-    reference_metrics = evaluate(reference) if reference is not None else None
+    reference_metrics = evaluate(reference.twin(robot)) if reference is not None else None
     return LayoutResult(
         pareto=pareto,
         recommended=recommend(pareto, reference_metrics),
         reference=reference_metrics,
+        reference_layout=reference,
         evaluations=len(problem.evaluated),
         wall_s=wall_s,
         seed=seed,

@@ -323,10 +323,15 @@ def symmetric_placements(
     return placements[0], placements[1]
 
 
+# The default layout (issue 13 layout study, docs/kinematics.md): bases 1.76 m apart, the inner rails 160 mm
+# apart (not interleaved), no stagger, no yaw, feet 0.4 m apart.
+DEFAULT_BASE_OFFSET_Y_M = 0.88
+DEFAULT_FEET_APART_M = 0.4
+
+
 def side_by_side_placements() -> tuple[RobotPlacement, RobotPlacement]:
-    """The default layout (issue 13 layout study, docs/kinematics.md): bases 1.76 m apart, the inner rails
-    160 mm apart (not interleaved), feet 0.4 m apart."""
-    return symmetric_placements(0.88, 0.0, 0.4)
+    """The default layout: the left robot the mirror image of the right, side by side."""
+    return symmetric_placements(DEFAULT_BASE_OFFSET_Y_M, 0.0, DEFAULT_FEET_APART_M)
 
 
 def legacy_interleaved_placements() -> tuple[RobotPlacement, RobotPlacement]:

@@ -96,7 +96,9 @@ IK_CHUNK_POSES = 4096
 class PoseCollisions:
     """The twin's closest pair of parts per pose (core.clearance), attached to each robot's solution."""
 
-    clearance_m: np.ndarray  # (N,) smallest clearance between parts that share no joint
+    # (N,) smallest clearance between parts that share no joint; exact below clearance_min_m + 0.1 m,
+    # else that bound (core.clearance.IK_EXACT_BELOW_M); `core.clearance.min_clearance` is exact everywhere.
+    clearance_m: np.ndarray
     closest_pair: np.ndarray  # (N,) index into `pair_names`
     pair_names: tuple[str, ...]  # "right rod 3 – left rod 3"
     clearance_min_m: float  # the margin: closer than this is a collision

@@ -112,7 +112,8 @@ def _check_clearance(
         parts.sliders,
         parts.segments,
     )
-    clearance, pair = min_clearance_kernel(parts.segments, parts.radius, parts.pairs, parts.boxes)
+    # Only a breach matters here: exact below the margin, skipping every pair that cannot be that close.
+    clearance, pair = min_clearance_kernel(parts.segments, parts.radius, parts.pairs, parts.boxes, clearance_min)
     if parts.platform_clearance < clearance:
         clearance, pair = parts.platform_clearance, -2
     if clearance < clearance_min:
