@@ -406,11 +406,15 @@ class TwinClearance:
         self.base_origin = np.ascontiguousarray([twin.placement(s).base_origin_m for s in twin.sides], dtype=float)
         self.clearance_min_m = twin.parts.clearance_min_m
         self.table = table
-        # Closest pairs first (at neutral), so that the running minimum prunes the rest early.
+        # Pairs that can come within IK_EXACT_BELOW_M of the margin first (a pose-independent bound says
+        # which), then closest first at neutral, so that the running minimum prunes the rest early.
         neutral = self._inputs(np.zeros((1, 6)))
         all_clearances = self._pair_clearances(table.pairs, neutral)[0]
-        order = np.argsort(all_clearances, kind="stable")
+        bound = self._static_bounds(table)
+        far = bound >= self.clearance_min_m + IK_EXACT_BELOW_M
+        order = np.lexsort((all_clearances, far))
         pairs = np.ascontiguousarray(table.pairs[order])
+        self.near_pair_count = int(np.count_nonzero(~far))
         self.table = replace(
             table, pairs=pairs, pair_names=tuple(f"{table.names[a]} – {table.names[b]}" for a, b in pairs)
         )
@@ -420,6 +424,28 @@ class TwinClearance:
         a, b = table.platform_pairs[closest]
         self.platform_clearance_m = float(platform[closest])
         self.platform_pair_name = f"{table.names[a]} – {table.names[b]}"
+
+    def _static_bounds(self, table: PartTable) -> np.ndarray:
+        """A lower bound on each pair's clearance at any pose: rails and sliders lie on their rail's
+        axis, a rod within one rod length of its rail's axis; platform parts are not bounded (−inf)."""
+        points, directions, reach = [], [], []
+        rod_length = [self.twin.robot_for(side).rod_length_m for side in self.twin.sides]
+        for part in range(len(table.names)):
+            side, leg, kind = int(table.robot[part]), int(table.leg[part]), PartKind(int(table.kind[part]))
+            rail_y = table.local[part, 0, 1] if kind is PartKind.RAIL else self.rail_y[side, max(leg, 0)]
+            points.append(self.base_origin[side] + self.base_yaw[side] @ np.array([0.0, rail_y, self.rail_z]))
+            directions.append(self.base_yaw[side] @ np.array([1.0, 0.0, 0.0]))
+            reach.append({PartKind.ROD: rod_length[side], PartKind.PLATFORM: np.inf}.get(kind, 0.0))
+        bounds = np.empty(len(table.pairs))
+        for k, (a, b) in enumerate(table.pairs):
+            normal = np.cross(directions[a], directions[b])
+            offset = points[b] - points[a]
+            if np.linalg.norm(normal) < 1e-9:  # parallel axes
+                axis_distance = float(np.linalg.norm(np.cross(offset, directions[a])))
+            else:
+                axis_distance = abs(float(offset @ normal)) / float(np.linalg.norm(normal))
+            bounds[k] = axis_distance - reach[a] - reach[b] - table.radius[a] - table.radius[b]
+        return bounds
 
     def _inputs(self, stance_poses: np.ndarray) -> PoseInputs:
         platform = twin_platform_poses(self.twin, stance_poses)
@@ -499,7 +525,10 @@ class TwinClearance:
         """Smallest clearance per pose from the twin IK's own results (no second IK). It is exact where it
         is below `exact_below_m`; elsewhere it is that bound (pair name `NOTHING_CLOSER`), which is faster."""
         inputs = self.inputs_from(platform_poses, solutions)
-        clearance, closest, _ = self._run(self.table.pairs, False, inputs, exact_below_m)
+        # Pairs that can never come that close need no look (`_static_bounds`).
+        near = exact_below_m <= self.clearance_min_m + IK_EXACT_BELOW_M
+        pairs = self.table.pairs[: self.near_pair_count] if near else self.table.pairs
+        clearance, closest, _ = self._run(pairs, False, inputs, exact_below_m)
         return self._result(clearance, closest)
 
     def _result(self, clearance: np.ndarray, closest: np.ndarray) -> ClearanceResult:

@@ -77,7 +77,7 @@ class ClearanceParts(NamedTuple):
             t.local,
             t.half_length,
             t.radius,
-            t.pairs,
+            t.pairs[: model.near_pair_count],  # the tick checks a breach of at most the margin + 0.1 m
             model.rail_y,
             model.rail_z,
             model.platform_clearance_m,

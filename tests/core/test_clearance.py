@@ -125,3 +125,26 @@ def test_the_default_layout_is_collision_free_over_its_whole_reported_workspace(
     # And it is collision-free beyond: the workspace ends at other limits, not at a collision.
     assert all("collision" not in r.limited_by_min + r.limited_by_max for r in ranges)
     assert math.isfinite(float(np.min(clearance.clearance_m)))
+
+
+@pytest.mark.parametrize("name", ["legacy-interleaved", "side-by-side"])
+def test_the_ik_screen_is_exact_wherever_the_clearance_is_near_the_margin(name: str) -> None:
+    """The twin IK looks only at pairs a pose-independent bound lets come near, and only below the margin
+    plus IK_EXACT_BELOW_M; there it must agree with the exact minimum over every pair."""
+    from core.clearance import IK_EXACT_BELOW_M
+    from core.kinematics import twin_platform_poses
+
+    twin = named_twin(name)
+    model = twin_clearance(twin)
+    stance = np.random.default_rng(8).uniform(-1.0, 1.0, (400, 6)) * np.array([0.3, 0.15, 0.1, 0.2, 0.25, 0.3])
+    solutions = twin_inverse_kinematics(twin, stance, check=False, clearance_check=False)
+    every_rod_reaches = np.all(np.isfinite(np.concatenate([s.slider_positions_m for s in solutions.values()], 1)), 1)
+    exact = np.minimum(model.pair_clearances(stance).min(axis=1), model.platform_clearance_m)[every_rod_reaches]
+    platform_poses = twin_platform_poses(twin, stance)
+    for cutoff in (model.clearance_min_m + 0.02, model.clearance_min_m + IK_EXACT_BELOW_M):
+        screened = model.from_solutions(platform_poses, solutions, exact_below_m=cutoff).clearance_m
+        screened = screened[every_rod_reaches]
+        near = exact < cutoff
+        np.testing.assert_allclose(screened[near], exact[near], atol=1e-12)
+        assert np.all(screened[~near] <= exact[~near] + 1e-12)  # elsewhere a bound, never more
+    assert np.count_nonzero(exact < model.clearance_min_m + IK_EXACT_BELOW_M) > 100
