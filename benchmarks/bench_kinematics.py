@@ -13,8 +13,16 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from core.kinematics import IK_THREADS, ForwardKinematics, inverse_kinematics, pose_jacobian
-from core.robot import SSPRobot, paper_robot
+from core.clearance import IK_EXACT_BELOW_M, twin_clearance
+from core.kinematics import (
+    IK_THREADS,
+    ForwardKinematics,
+    inverse_kinematics,
+    pose_jacobian,
+    twin_inverse_kinematics,
+    twin_platform_poses,
+)
+from core.robot import SSPRobot, TwinRobot, default_twin, paper_robot
 
 IK_TARGET_LEGS_PER_S = 5e6
 FK_TARGET_MEDIAN_US = 30.0
@@ -57,6 +65,62 @@ def bench_batch_ik(robot: SSPRobot, pose_count: int) -> dict[str, Any]:
         "leg_solutions_per_s_without_singularity_screen": closed_form_only,
         "target_leg_solutions_per_s": IK_TARGET_LEGS_PER_S,
         "met": bool(rate >= IK_TARGET_LEGS_PER_S),
+    }
+
+
+def _stance_poses(pose_count: int) -> np.ndarray:
+    rng = np.random.default_rng(1)
+    span = np.array([0.3, 0.1, 0.1, math.radians(8), math.radians(10), math.radians(15)])
+    return rng.uniform(-1.0, 1.0, (pose_count, 6)) * span
+
+
+def _best_of_3(action: Any) -> float:
+    seconds = []
+    for _ in range(3):
+        start = time.perf_counter()
+        action()
+        seconds.append(time.perf_counter() - start)
+    return min(seconds)
+
+
+def bench_twin_ik_with_clearance(twin: TwinRobot, pose_count: int) -> dict[str, Any]:
+    """Twin IK of both robots (12 legs a pose) with every check and the clearance of all part pairs,
+    against the same IK without the clearance, in the same run."""
+    poses = _stance_poses(pose_count)
+    twin_inverse_kinematics(twin, poses[:1000], check=False)  # warm-up and compile
+    with_clearance = _best_of_3(lambda: twin_inverse_kinematics(twin, poses, check=False))
+    without = _best_of_3(lambda: twin_inverse_kinematics(twin, poses, check=False, clearance_check=False))
+    rate = 12 * pose_count / with_clearance
+    return {
+        "twin_poses": pose_count,
+        "includes": "both robots' closed form, stroke, cone, singularity and the clearance of every part pair",
+        "leg_solutions_per_s": rate,
+        "leg_solutions_per_s_without_clearance": 12 * pose_count / without,
+        "target_leg_solutions_per_s": IK_TARGET_LEGS_PER_S,
+        "met": bool(rate >= IK_TARGET_LEGS_PER_S),
+    }
+
+
+def bench_clearance_per_pose(twin: TwinRobot, pose_count: int) -> dict[str, Any]:
+    """The clearance check's own cost per twin pose, from the IK's results (no IK inside the timing)."""
+    poses = _stance_poses(pose_count)
+    model = twin_clearance(twin)
+    platform = twin_platform_poses(twin, poses)
+    solutions = twin_inverse_kinematics(twin, poses, check=False, clearance_check=False)
+    model.from_solutions(platform, solutions)  # warm-up
+    pruned = _best_of_3(lambda: model.from_solutions(platform, solutions))
+    near_only = _best_of_3(
+        lambda: model.from_solutions(platform, solutions, exact_below_m=model.clearance_min_m + IK_EXACT_BELOW_M)
+    )
+    every_pair = _best_of_3(lambda: model.pair_clearances(poses[: pose_count // 10]))
+    return {
+        "twin_poses": pose_count,
+        "parts": len(model.table.names),
+        "pairs_checked_per_pose": len(model.table.pairs),
+        "us_per_twin_pose_exact_minimum": pruned / pose_count * 1e6,
+        "us_per_twin_pose_as_the_ik_uses_it": near_only / pose_count * 1e6,
+        "ik_exact_below_mm": (model.clearance_min_m + IK_EXACT_BELOW_M) * 1e3,
+        "us_per_twin_pose_every_pair_exact": every_pair / (pose_count // 10) * 1e6,
     }
 
 
@@ -140,6 +204,8 @@ def run(*, quick: bool) -> dict[str, Any]:
     warm_fk, _ = bench_warm_fk(robot, poses, sliders)
     return {
         "batch_ik": bench_batch_ik(robot, 100_000 if quick else 1_000_000),
+        "twin_ik_with_clearance": bench_twin_ik_with_clearance(default_twin(), 50_000 if quick else 500_000),
+        "clearance_check": bench_clearance_per_pose(default_twin(), 20_000 if quick else 200_000),
         "warm_started_fk": warm_fk,
         "fk_vs_scipy": bench_against_scipy(robot, poses, sliders, stride=50 if quick else 10),
         "held_out_yaw_20": held_out_yaw_20(robot),

@@ -30,7 +30,14 @@ from typing import Any
 import numba
 import numpy as np
 
-from core.kinematics import _as_poses, euler_from_rotation, rotation_matrices, stance_origin_world
+from core.kinematics import (
+    _as_poses,
+    euler_from_rotation,
+    leg_kernel,
+    rotation_matrices,
+    stance_origin_world,
+    yaw_matrix,
+)
 from core.robot import GRAVITY_M_S2, DescriptionError, SSPRobot, TwinRobot
 from core.rotations import rotation_into
 
@@ -182,12 +189,20 @@ def _leg_motion(
     Closed-form IK x = W_x + side·h, h = √(L² − Δy² − Δz²), differentiated twice. False if a rod cannot reach.
     `geometry` rows are (B_x, B_y, B_z, rail_y, side); `vector` is (3,) scratch."""
     for leg in range(6):
-        for i in range(3):
-            lever[leg, i] = (
-                rotation[i, 0] * geometry[leg, 0]
-                + rotation[i, 1] * geometry[leg, 1]
-                + rotation[i, 2] * geometry[leg, 2]
-            )
+        lx, ly, lz, _, dy, dz, slider_x, reach_sq = leg_kernel(
+            geometry[leg, 0],
+            geometry[leg, 1],
+            geometry[leg, 2],
+            geometry[leg, 3],
+            geometry[leg, 4],
+            rail_z,
+            rod_length,
+            position[0],
+            position[1],
+            position[2],
+            rotation,
+        )
+        lever[leg, 0], lever[leg, 1], lever[leg, 2] = lx, ly, lz
         _cross(omega, lever[leg], vector)
         for i in range(3):
             joint_velocity[leg, i] = velocity[i] + vector[i]
@@ -195,9 +210,6 @@ def _leg_motion(
         _cross(alpha, lever[leg], vector)
         for i in range(3):
             joint_acceleration[leg, i] += acceleration[i] + vector[i]
-        dy = position[1] + lever[leg, 1] - geometry[leg, 3]
-        dz = position[2] + lever[leg, 2] - rail_z
-        reach_sq = rod_length * rod_length - dy * dy - dz * dz
         if reach_sq <= 0.0:
             return False
         along = np.sqrt(reach_sq)
@@ -205,7 +217,7 @@ def _leg_motion(
         vy, vz = joint_velocity[leg, 1], joint_velocity[leg, 2]
         ay, az = joint_acceleration[leg, 1], joint_acceleration[leg, 2]
         along_rate = -(dy * vy + dz * vz) / along
-        slider[0, leg] = position[0] + lever[leg, 0] + side * along
+        slider[0, leg] = slider_x
         slider[1, leg] = joint_velocity[leg, 0] + side * along_rate
         slider[2, leg] = joint_acceleration[leg, 0] - side * (
             (vy * vy + vz * vz + dy * ay + dz * az) / along + along_rate * along_rate / along
@@ -723,7 +735,7 @@ class TwinInverseDynamics:
             placement, robot = twin.placement(side), twin.robot_for(side)
             _check_rated_load(robot, share.mass_kg)
             yaw = placement.base_yaw_rad
-            base_rotation = np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0, 0, 1.0]])
+            base_rotation = yaw_matrix(yaw)
             neutral = np.asarray(robot.neutral_pose, dtype=float)
             neutral_world = base_rotation @ rotation_matrices(neutral[None, 3:])[0]
             platform_world = np.asarray(placement.base_origin_m) + base_rotation @ neutral[:3]

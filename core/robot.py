@@ -236,25 +236,47 @@ class RobotPlacement:
 
 
 @dataclass(frozen=True)
+class PartDimensions:
+    """Sizes of the physical parts for the clearance check (core.clearance). The paper gives none: these
+    are stated assumptions. Every part is a capsule (a segment swept by a sphere)."""
+
+    rod_diameter_m: float = 0.04
+    rail_diameter_m: float = 0.05
+    rail_overhang_m: float = 0.10  # rail length beyond the outermost stroke end
+    slider_length_m: float = 0.15  # along its rail, centred on the slider joint
+    slider_diameter_m: float = 0.08
+    platform_thickness_m: float = 0.04  # the platform as its joint hexagon's edges, this thick
+    foot_plate_length_m: float = 0.30  # along the platform's X axis
+    foot_plate_width_m: float = 0.12
+    foot_plate_thickness_m: float = 0.03
+    clearance_min_m: float = 0.005  # closer than this is a collision
+
+    def validate(self, prefix: str = "twin.parts") -> None:
+        for name, value in asdict(self).items():
+            _require_positive(f"{prefix}.{name}", value)
+        if self.foot_plate_width_m < self.foot_plate_thickness_m:
+            raise DescriptionError(
+                f"{prefix}.foot_plate_width_m", self.foot_plate_width_m, "must be >= foot_plate_thickness_m"
+            )
+
+
+@dataclass(frozen=True)
 class TwinRobot:
     """Two 6-SSP robots, symmetrically mirrored (paper §2.2), one per foot.
 
-    The paper does not say where the second robot stands. Default: bases 1.0 m apart along world Y
-    with interleaved rails, the left robot the mirror image of the right, and each foot plate 0.25 m
-    inboard of its platform centre, so that the feet stand 0.5 m apart. All of it is configuration.
+    The paper does not say where the second robot stands. Default (`side_by_side_placements`, issue 13
+    layout study): bases at world y = ∓0.88 m, rails not interleaved, the left robot the mirror image of
+    the right, each foot plate cantilevered 0.68 m inboard so that the feet stand 0.4 m apart. The layout
+    before issue 13 (`legacy-interleaved`: bases at y = ±0.5 m) cannot be built: its rods 3 and 4 cross.
     """
 
     robot: SSPRobot = field(default_factory=paper_robot)
-    right: RobotPlacement = field(
-        default_factory=lambda: RobotPlacement(base_origin_m=(0.0, -0.5, 0.0), foot_plate_offset_m=(0.0, 0.25, 0.0))
-    )
-    left: RobotPlacement = field(
-        default_factory=lambda: RobotPlacement(
-            base_origin_m=(0.0, 0.5, 0.0), mirrored=True, foot_plate_offset_m=(0.0, -0.25, 0.0)
-        )
-    )
+    right: RobotPlacement = field(default_factory=lambda: side_by_side_placements()[0])
+    left: RobotPlacement = field(default_factory=lambda: side_by_side_placements()[1])
+    parts: PartDimensions = field(default_factory=PartDimensions)
 
     def __post_init__(self) -> None:
+        self.parts.validate()
         for side_name, placement in (("right", self.right), ("left", self.left)):
             _require_finite(f"{side_name}.base_origin_m", placement.base_origin_m)
             _require_finite(f"{side_name}.base_yaw_rad", placement.base_yaw_rad)
@@ -278,8 +300,65 @@ class TwinRobot:
         return self.robot.mirrored()
 
 
+def symmetric_placements(
+    base_offset_y_m: float, stagger_x_m: float, feet_apart_m: float, *, base_yaw_rad: float = 0.0, mirrored: bool = True
+) -> tuple[RobotPlacement, RobotPlacement]:
+    """Right and left placements, point-symmetric about the world Z axis: the right base at
+    (stagger, −offset), yawed by −yaw, the left at (−stagger, +offset), yawed by +yaw (the mirror image of
+    the right when `mirrored`); each foot plate where the feet stand side by side at world (0, ∓feet/2)."""
+    placements = []
+    for sign, yaw in ((1.0, -base_yaw_rad), (-1.0, base_yaw_rad)):
+        origin = np.array([sign * stagger_x_m, -sign * base_offset_y_m, 0.0])
+        foot_world = np.array([0.0, -sign * feet_apart_m / 2, 0.0])
+        # The platform centre sits above the base origin at neutral (the paper's neutral pose has x = y = 0).
+        offset = rotation_matrix(0.0, 0.0, yaw).T @ (foot_world - origin)
+        placements.append(
+            RobotPlacement(
+                base_origin_m=tuple(float(v) for v in origin),  # type: ignore[arg-type]
+                base_yaw_rad=float(yaw),
+                mirrored=mirrored and sign < 0,
+                foot_plate_offset_m=(float(offset[0]), float(offset[1]), 0.0),
+            )
+        )
+    return placements[0], placements[1]
+
+
+# The default layout (issue 13 layout study, docs/kinematics.md): bases 1.76 m apart, the inner rails 160 mm
+# apart (not interleaved), no stagger, no yaw, feet 0.4 m apart.
+DEFAULT_BASE_OFFSET_Y_M = 0.88
+DEFAULT_FEET_APART_M = 0.4
+
+
+def side_by_side_placements() -> tuple[RobotPlacement, RobotPlacement]:
+    """The default layout: the left robot the mirror image of the right, side by side."""
+    return symmetric_placements(DEFAULT_BASE_OFFSET_Y_M, 0.0, DEFAULT_FEET_APART_M)
+
+
+def legacy_interleaved_placements() -> tuple[RobotPlacement, RobotPlacement]:
+    """The default before issue 13: bases at y = ±0.5 m, x = 0, feet 0.5 m apart. Its rods 3 and 4 cross
+    at neutral; kept loadable (`--robot legacy-interleaved`) so that the collision stays demonstrable."""
+    return (
+        RobotPlacement(base_origin_m=(0.0, -0.5, 0.0), foot_plate_offset_m=(0.0, 0.25, 0.0)),
+        RobotPlacement(base_origin_m=(0.0, 0.5, 0.0), mirrored=True, foot_plate_offset_m=(0.0, -0.25, 0.0)),
+    )
+
+
+NAMED_LAYOUTS = {
+    "side-by-side": side_by_side_placements,
+    "legacy-interleaved": legacy_interleaved_placements,
+}
+
+
 def default_twin() -> TwinRobot:
     return TwinRobot()
+
+
+def named_twin(name: str) -> TwinRobot:
+    """A built-in layout by name (`NAMED_LAYOUTS`) with the paper's robot."""
+    if name not in NAMED_LAYOUTS:
+        raise DescriptionError("robot", name, f"not a file and not a built-in layout; known: {sorted(NAMED_LAYOUTS)}")
+    right, left = NAMED_LAYOUTS[name]()
+    return TwinRobot(right=right, left=left)
 
 
 # --- TOML -----------------------------------------------------------------------------------------
@@ -312,7 +391,8 @@ def twin_to_dict(twin: TwinRobot) -> dict[str, Any]:
                 "foot_plate_offset_m": list(p.foot_plate_offset_m),
             }
             for name, p in (("right", twin.right), ("left", twin.left))
-        },
+        }
+        | {"parts": asdict(twin.parts)},
     }
 
 
@@ -334,7 +414,7 @@ def _refuse_unknown_keys(section: str, data: Mapping[str, Any], known: set[str])
 
 def twin_from_dict(data: Mapping[str, Any]) -> TwinRobot:
     _refuse_unknown_keys("", data, {"robot", "twin"})
-    _refuse_unknown_keys("twin", data.get("twin", {}), {"right", "left"})
+    _refuse_unknown_keys("twin", data.get("twin", {}), {"right", "left", "parts"})
     robot_data = dict(data.get("robot", {}))
     sliders = [_build(Slider, f"robot.sliders[{i}]", s) for i, s in enumerate(robot_data.pop("sliders", []), 1)]
     limits = _build(MotionLimits, "robot.limits", robot_data.pop("limits", {}))
@@ -344,7 +424,8 @@ def twin_from_dict(data: Mapping[str, Any]) -> TwinRobot:
     placements = {
         name: _build(RobotPlacement, f"twin.{name}", twin_data[name]) for name in ("right", "left") if name in twin_data
     }
-    return TwinRobot(robot=robot, **placements)
+    parts = _build(PartDimensions, "twin.parts", twin_data.get("parts", {}))
+    return TwinRobot(robot=robot, parts=parts, **placements)
 
 
 def load_twin(path: str | Path) -> TwinRobot:

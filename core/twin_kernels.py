@@ -9,18 +9,22 @@ fused into one allocation-free call so that a tick costs microseconds. The tests
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
+from core.clearance import TwinClearance, min_clearance_kernel, twin_clearance, twin_segments_into
 from core.kinematics import (
     ForwardKinematicsError,
-    _fk_newton,
-    _neutral_rod_directions,
-    _yaw_matrix,
+    LegGeometry,
+    leg_geometry,
+    leg_solution,
     rotation_matrices,
     stance_origin_world,
+    yaw_matrix,
 )
+from core.kinematics.fk import _fk_newton
 from core.robot import TwinRobot
 from core.rotations import rotation_into
 
@@ -28,6 +32,12 @@ from core.rotations import rotation_into
 VIOLATION_FIELDS = 4
 # Violation codes; server.realtime.telemetry.LimitCode names the same numbers (a test checks).
 ROD_REACH, STROKE, BASE_JOINT_CONE, PLATFORM_JOINT_CONE, TILT, SLIDER_VELOCITY, SLIDER_ACCELERATION = range(1, 8)
+COLLISION = 10
+# The limits vector the command kernel reads (server.realtime.limits builds it): base cone, platform cone,
+# tilt, slider velocity, slider acceleration, drive force, clearance.
+LIMITS_VECTOR_SIZE = 7
+# Every limit open: infinite bounds, no clearance required (start-up states are not checked).
+UNCHECKED_LIMITS = np.array([np.inf] * (LIMITS_VECTOR_SIZE - 1) + [-np.inf])
 
 
 @numba.njit(cache=True)
@@ -37,6 +47,80 @@ def _set_violation(violation: np.ndarray, code: int, axis: int, value: float, li
         violation[1] = axis
         violation[2] = value
         violation[3] = limit
+
+
+class ClearanceParts(NamedTuple):
+    """The twin's capsules (core.clearance) and the tick's scratch for them, as one numba argument."""
+
+    kind: np.ndarray
+    robot: np.ndarray
+    leg: np.ndarray
+    local: np.ndarray
+    half_length: np.ndarray
+    radius: np.ndarray
+    pairs: np.ndarray
+    rail_y: np.ndarray  # (2, 6)
+    rail_z: float
+    platform_clearance: float  # pose-invariant (both platforms move with the stance frame)
+    positions: np.ndarray  # (2, 3) scratch: this tick's platform positions, base frames
+    rotations: np.ndarray  # (2, 3, 3)
+    joints_world: np.ndarray  # (2, 6, 3)
+    sliders: np.ndarray  # (2, 6)
+    segments: np.ndarray  # (P, 2, 3)
+    boxes: np.ndarray  # (P, 6)
+
+    @classmethod
+    def build(cls, model: TwinClearance) -> ClearanceParts:
+        t = model.table
+        count = len(t.names)
+        return cls(
+            t.kind,
+            t.robot,
+            t.leg,
+            t.local,
+            t.half_length,
+            t.radius,
+            t.pairs[: model.near_pair_count],  # the tick checks a breach of at most the margin + 0.1 m
+            model.rail_y,
+            model.rail_z,
+            model.platform_clearance_m,
+            np.zeros((2, 3)),
+            np.zeros((2, 3, 3)),
+            np.zeros((2, 6, 3)),
+            np.zeros((2, 6)),
+            np.zeros((count, 2, 3)),
+            np.zeros((count, 6)),
+        )
+
+
+@numba.njit(cache=True)
+def _check_clearance(
+    parts: ClearanceParts, base_yaw: np.ndarray, base_origin: np.ndarray, clearance_min: float, violation: np.ndarray
+) -> None:
+    """COLLISION (code 10, axis = the pair's index in `pairs`, or −2 for the platforms) when two parts come
+    closer than `clearance_min`."""
+    twin_segments_into(
+        parts.kind,
+        parts.robot,
+        parts.leg,
+        parts.local,
+        parts.half_length,
+        parts.rail_y,
+        parts.rail_z,
+        base_yaw,
+        base_origin,
+        parts.positions,
+        parts.rotations,
+        parts.joints_world,
+        parts.sliders,
+        parts.segments,
+    )
+    # Only a breach matters here: exact below the margin, skipping every pair that cannot be that close.
+    clearance, pair = min_clearance_kernel(parts.segments, parts.radius, parts.pairs, parts.boxes, clearance_min)
+    if parts.platform_clearance < clearance:
+        clearance, pair = parts.platform_clearance, -2
+    if clearance < clearance_min:
+        _set_violation(violation, COLLISION, pair, clearance, clearance_min)
 
 
 @numba.njit(cache=True)
@@ -50,22 +134,19 @@ def twin_command_kernel(
     base_origin: np.ndarray,  # (2, 3)
     lever_world: np.ndarray,  # (2, 3)
     neutral_rotation_world: np.ndarray,  # (2, 3, 3)
-    joints: np.ndarray,  # (2, 6, 3)
-    rail_y: np.ndarray,  # (2, 6)
-    rail_z: float,
-    sides: np.ndarray,  # (2, 6)
-    rod_length: float,
+    geometries: tuple[LegGeometry, LegGeometry],  # right, left
     stroke_min: np.ndarray,  # (12,)
     stroke_max: np.ndarray,  # (12,)
-    cone_axes: np.ndarray,  # (2, 6, 3)
-    limits: np.ndarray,  # (6,) base cone, platform cone, tilt, velocity, acceleration, (unused)
+    limits: np.ndarray,  # (7,) base cone, platform cone, tilt, velocity, acceleration, (unused), clearance
     scratch: np.ndarray,  # (4, 3, 3)
+    parts: ClearanceParts,
     sliders_out: np.ndarray,  # (12,)
     velocity_out: np.ndarray,  # (12,)
     acceleration_out: np.ndarray,  # (12,)
     violation: np.ndarray,  # (4,)
 ) -> None:
     violation[:] = 0.0
+    every_rod_reaches = True
     stance_rotation = scratch[0]
     world_rotation = scratch[1]
     platform_rotation = scratch[2]
@@ -98,30 +179,32 @@ def twin_command_kernel(
         px = base_yaw[side, 0, 0] * world_x + base_yaw[side, 1, 0] * world_y + base_yaw[side, 2, 0] * world_z
         py = base_yaw[side, 0, 1] * world_x + base_yaw[side, 1, 1] * world_y + base_yaw[side, 2, 1] * world_z
         pz = base_yaw[side, 0, 2] * world_x + base_yaw[side, 1, 2] * world_y + base_yaw[side, 2, 2] * world_z
+        parts.positions[side, 0], parts.positions[side, 1], parts.positions[side, 2] = px, py, pz
+        parts.rotations[side, :, :] = platform_rotation
+        geometry = geometries[side]
+        rod_length = geometry.rod_length
         for leg in range(6):
             axis = 6 * side + leg
-            bx, by, bz = joints[side, leg, 0], joints[side, leg, 1], joints[side, leg, 2]
-            wx = px + platform_rotation[0, 0] * bx + platform_rotation[0, 1] * by + platform_rotation[0, 2] * bz
-            wy = py + platform_rotation[1, 0] * bx + platform_rotation[1, 1] * by + platform_rotation[1, 2] * bz
-            wz = pz + platform_rotation[2, 0] * bx + platform_rotation[2, 1] * by + platform_rotation[2, 2] * bz
-            dy = wy - rail_y[side, leg]
-            dz = wz - rail_z
-            reach_sq = rod_length * rod_length - dy * dy - dz * dz
+            lx, ly, lz, dx, dy, dz, slider, reach_sq = leg_solution(geometry, leg, px, py, pz, platform_rotation)
             if reach_sq < 0.0:
                 _set_violation(violation, ROD_REACH, axis, math.sqrt(dy * dy + dz * dz), rod_length)
                 sliders_out[axis] = previous_sliders[axis]
+                every_rod_reaches = False
                 continue
-            along = math.sqrt(reach_sq)
-            slider = wx + sides[side, leg] * along
             sliders_out[axis] = slider
+            parts.sliders[side, leg] = slider
+            parts.joints_world[side, leg, 0] = px + lx
+            parts.joints_world[side, leg, 1] = py + ly
+            parts.joints_world[side, leg, 2] = pz + lz
             if slider < stroke_min[axis]:
                 _set_violation(violation, STROKE, axis, slider, stroke_min[axis])
             elif slider > stroke_max[axis]:
                 _set_violation(violation, STROKE, axis, slider, stroke_max[axis])
-            # Rod direction d = (−side·along, dy, dz)/L against the neutral axis, at the slider (base
-            # frame) and at the platform (axis carried along by the platform rotation).
-            rx, ry, rz = -sides[side, leg] * along / rod_length, dy / rod_length, dz / rod_length
-            ax, ay, az = cone_axes[side, leg, 0], cone_axes[side, leg, 1], cone_axes[side, leg, 2]
+            # Rod direction d/L against the neutral axis, at the slider (base frame) and at the platform
+            # (axis carried along by the platform rotation).
+            rx, ry, rz = dx / rod_length, dy / rod_length, dz / rod_length
+            axes = geometry.cone_axes
+            ax, ay, az = axes[leg, 0], axes[leg, 1], axes[leg, 2]
             base_cone = math.acos(min(1.0, max(-1.0, rx * ax + ry * ay + rz * az)))
             if base_cone > limits[0]:
                 _set_violation(violation, BASE_JOINT_CONE, axis, base_cone, limits[0])
@@ -131,6 +214,8 @@ def twin_command_kernel(
             platform_cone = math.acos(min(1.0, max(-1.0, rx * qx + ry * qy + rz * qz)))
             if platform_cone > limits[1]:
                 _set_violation(violation, PLATFORM_JOINT_CONE, axis, platform_cone, limits[1])
+    if every_rod_reaches:
+        _check_clearance(parts, base_yaw, base_origin, limits[6], violation)
     for axis in range(12):
         velocity = (sliders_out[axis] - previous_sliders[axis]) / period_s
         acceleration = (velocity - previous_velocity[axis]) / period_s
@@ -178,11 +263,7 @@ def stance_from_platform_kernel(
 def measured_stance_kernel(
     sliders: np.ndarray,  # (6,) right robot
     warm_pose: np.ndarray,  # (6,) last platform pose: Newton's start, updated on success
-    joints: np.ndarray,
-    rail_y: np.ndarray,
-    rail_z: float,
-    sides: np.ndarray,
-    rod_length: float,
+    geometry: LegGeometry,
     tolerance: float,
     max_iterations: int,
     platform_out: np.ndarray,  # (6,)
@@ -195,9 +276,7 @@ def measured_stance_kernel(
     stance_out: np.ndarray,
 ) -> tuple[int, float]:
     """Newton FK of the right robot (core.kinematics) warm-started from the last pose, then its stance pose."""
-    iterations, residual = _fk_newton(
-        sliders, warm_pose, joints, rail_y, rail_z, sides, rod_length, tolerance, max_iterations, platform_out
-    )
+    iterations, residual = _fk_newton(sliders, warm_pose, geometry, tolerance, max_iterations, platform_out)
     if iterations < 0 or not np.isfinite(residual):
         return iterations, residual
     warm_pose[:] = platform_out
@@ -214,19 +293,16 @@ class TwinKernels:
         self.twin, self.period_s = twin, period_s
         robots = [twin.robot_for(side) for side in twin.sides]
         self.stance_origin = stance_origin_world(twin)
-        self.base_yaw = np.stack([_yaw_matrix(twin.placement(side).base_yaw_rad) for side in twin.sides])
+        self.base_yaw = np.stack([yaw_matrix(twin.placement(side).base_yaw_rad) for side in twin.sides])
         self.base_origin = np.array([twin.placement(side).base_origin_m for side in twin.sides], dtype=float)
         neutral = np.array([robot.neutral_pose for robot in robots], dtype=float)
         self.neutral_rotation_world = np.einsum("sij,sjk->sik", self.base_yaw, rotation_matrices(neutral[:, 3:]))
         self.lever_world = (
             self.base_origin + np.einsum("sij,sj->si", self.base_yaw, neutral[:, :3]) - self.stance_origin
         )
-        self.joints = np.stack([robot.platform_joints_m for robot in robots])
-        self.rail_y = np.stack([robot.rail_y_m for robot in robots])
-        self.rail_z = float(robots[0].rail_z_m)
-        self.sides = np.stack([robot.sides for robot in robots])
-        self.rod_length = float(robots[0].rod_length_m)
-        self.cone_axes = np.stack([_neutral_rod_directions(robot) for robot in robots])
+        self.geometries = (leg_geometry(robots[0]), leg_geometry(robots[1]))
+        self.clearance = twin_clearance(twin)
+        self._parts = ClearanceParts.build(self.clearance)
         self._scratch = np.zeros((4, 3, 3))
         self._right = robots[0]
         self._fk_warm_pose = np.asarray(robots[0].neutral_pose, dtype=float).copy()
@@ -257,21 +333,21 @@ class TwinKernels:
             self.base_origin,
             self.lever_world,
             self.neutral_rotation_world,
-            self.joints,
-            self.rail_y,
-            self.rail_z,
-            self.sides,
-            self.rod_length,
+            self.geometries,
             stroke_min,
             stroke_max,
-            self.cone_axes,
             limits,
             self._scratch,
+            self._parts,
             sliders_out,
             velocity_out,
             acceleration_out,
             violation,
         )
+
+    def collision_pair_name(self, axis: int) -> str:
+        """The two parts a COLLISION violation's axis names."""
+        return self.clearance.platform_pair_name if axis == -2 else self.clearance.table.pair_names[axis]
 
     def measured_stance_pose(self, right_sliders_m: np.ndarray, stance_out: np.ndarray) -> int:
         """Stance pose from the right robot's measured sliders (Newton FK warm-started from the last
@@ -279,11 +355,7 @@ class TwinKernels:
         iterations, residual = measured_stance_kernel(
             right_sliders_m,
             self._fk_warm_pose,
-            self.joints[0],
-            self.rail_y[0],
-            self.rail_z,
-            self.sides[0],
-            self.rod_length,
+            self.geometries[0],
             1e-12,
             20,
             self._fk_pose,
@@ -310,7 +382,7 @@ class TwinKernels:
             scratch_velocity,
             np.full(12, -np.inf),
             np.full(12, np.inf),
-            np.full(6, np.inf),
+            UNCHECKED_LIMITS,
             sliders_out,
             scratch_velocity,
             scratch_acceleration,

@@ -37,11 +37,12 @@ def robot_reachability(robot: SSPRobot) -> Reachability:
     return evaluate
 
 
-def stance_reachability(twin: TwinRobot) -> Reachability:
-    """Stance-frame poses move both feet as one rigid body: reachable only if both robots can follow."""
+def stance_reachability(twin: TwinRobot, *, clearance_check: bool = True) -> Reachability:
+    """Stance-frame poses move both feet as one rigid body: reachable only if both robots can follow and
+    no two parts collide (`clearance_check=False` ignores collisions: for layouts that cannot be built)."""
 
     def evaluate(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        solutions = twin_inverse_kinematics(twin, offsets, check=False)
+        solutions = twin_inverse_kinematics(twin, offsets, check=False, clearance_check=clearance_check)
         flags = np.bitwise_or.reduce(
             np.concatenate([solution.violations for solution in solutions.values()], axis=1), axis=1
         )

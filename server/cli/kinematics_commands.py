@@ -9,7 +9,17 @@ from typing import Any
 import numpy as np
 import typer
 
-from core.kinematics import ForwardKinematics, ForwardKinematicsError, UnreachablePoseError, inverse_kinematics
+from core.kinematics import (
+    ForwardKinematics,
+    ForwardKinematicsError,
+    UnreachablePoseError,
+    inverse_kinematics,
+    platform_joints_world,
+    twin_inverse_kinematics,
+    twin_platform_poses,
+    yaw_matrix,
+)
+from core.robot import TwinRobot
 from server.cli.output import console, emit, fail
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
 
@@ -30,9 +40,16 @@ def register(app: typer.Typer) -> None:
             ..., "--pose", help="X Y Z (mm) ROLL PITCH YAW (deg)", metavar="X Y Z ROLL PITCH YAW"
         ),
         as_json: bool = typer.Option(False, "--json"),
+        twin_pose: bool = typer.Option(
+            False, "--twin", help="POSE is a stance pose relative to neutral; solve both robots (world frame)."
+        ),
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
-        """Slider positions (mm along each rail, REFERENCE.md order) for one platform pose."""
+        """Slider positions (mm along each rail, REFERENCE.md order) for one platform pose, or with
+        --twin both robots' sliders and rod ends (world frame, mm) for one stance pose."""
+        if twin_pose:
+            _twin_ik(pose, as_json, robot_file)
+            return
         try:
             robot = twin_from_option(robot_file).robot
             solution = inverse_kinematics(robot, pose_si_from_mm_deg(list(pose)))
@@ -85,3 +102,63 @@ def register(app: typer.Typer) -> None:
             console.print(f"{d['iterations']} iterations, residual {d['residual_mm']:.3g} mm")
 
         emit(data, as_json=as_json, human=human)
+
+
+def twin_ik_report(twin: TwinRobot, stance_pose: np.ndarray) -> dict[str, Any]:
+    """Both robots at one stance pose, world frame, mm: sliders, rod ends, foot plates, every violation."""
+    solutions = twin_inverse_kinematics(twin, stance_pose[None, :], check=False)
+    platforms = twin_platform_poses(twin, stance_pose[None, :])
+    robots: dict[str, Any] = {}
+    feet = []
+    for side in twin.sides:
+        placement, robot = twin.placement(side), twin.robot_for(side)
+        yaw, origin = yaw_matrix(placement.base_yaw_rad), np.asarray(placement.base_origin_m)
+        positions, rotations = platforms[side]
+        sliders = solutions[side].slider_positions_m[0]
+        slider_joints = np.column_stack([sliders, robot.rail_y_m, np.full(6, robot.rail_z_m)])
+        platform_joints = platform_joints_world(robot, positions, rotations)[0]
+        foot = positions[0] + rotations[0] @ np.asarray(placement.foot_plate_offset_m)
+        robots[side] = {
+            "sliders_mm": (sliders * 1e3).tolist(),
+            "slider_joints_mm": ((origin + slider_joints @ yaw.T) * 1e3).tolist(),
+            "platform_joints_mm": ((origin + platform_joints @ yaw.T) * 1e3).tolist(),
+        }
+        feet.append(((origin + yaw @ foot) * 1e3).tolist())
+    violations = [
+        {"robot": side, "reason": v.reason, "slider": v.slider, "value": v.value, "limit": v.limit, "unit": v.unit}
+        for side, solution in solutions.items()
+        for v in solution.limit_violations()
+    ]
+    return {
+        "stance_pose": dict(zip(POSE_KEYS, pose_mm_deg_from_si(stance_pose), strict=True)),
+        "reachable": not violations,
+        "violations": violations,
+        "robots": robots,
+        "foot_plates_mm": feet,
+    }
+
+
+POSE_KEYS = ["x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"]
+
+
+def _twin_ik(pose: tuple[float, ...], as_json: bool, robot_file: Path | None) -> None:
+    try:
+        data = twin_ik_report(twin_from_option(robot_file), pose_si_from_mm_deg(list(pose)))
+    except (DescriptionError, ValueError) as error:
+        raise fail(str(error), as_json=as_json) from error
+
+    def human(d: dict[str, Any]) -> None:
+        for side, robot in d["robots"].items():
+            sliders = "  ".join(f"{value:9.2f}" for value in robot["sliders_mm"])
+            console.print(f"{side:>5} sliders (mm): {sliders}")
+        for violation in d["violations"]:
+            unit = f" {violation['unit']}" if violation["unit"] else ""
+            console.print(
+                f"{violation['robot']} robot: {violation['reason']} "
+                f"(value {violation['value']:.6g}{unit}, limit {violation['limit']:.6g}{unit})"
+            )
+        console.print("reachable" if d["reachable"] else "NOT reachable")
+
+    emit(data, as_json=as_json, human=human)
+    if not data["reachable"]:
+        raise typer.Exit(1)

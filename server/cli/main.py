@@ -18,6 +18,7 @@ app = typer.Typer(
 COMMAND_MODULES = (
     "server.cli.kinematics_commands",
     "server.cli.workspace_commands",
+    "server.cli.layout_commands",
     "server.cli.bench_commands",
     "server.cli.realtime_commands",
     "server.cli.dynamics_commands",

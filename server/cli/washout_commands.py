@@ -10,8 +10,8 @@ import numpy as np
 import typer
 
 from core import tuning
-from core.fidelity import platform_angular_velocity
-from core.kinematics import twin_inverse_kinematics
+from core.fidelity import platform_angular_velocity, platform_specific_force
+from core.kinematics import twin_inverse_kinematics, twin_singularity_report, violation_stretches
 from core.perception import head_specific_force, tilt_rate_check
 from core.robot import GRAVITY_M_S2, TwinRobot
 from core.shaping import CommandShaper, ParameterError, ShapingParameters
@@ -67,6 +67,9 @@ def paper_tilt_step(twin: TwinRobot, params: WashoutParameters, shaping: Shaping
         "limit_violations": [
             f"{side} robot: {v}" for side, s in solutions.items() for v in s.limit_violations(max_count=3)
         ],
+        # Every breach by reason and stretch, and how the trajectory stands to the singularities.
+        "violations_by_reason": violation_stretches(solutions, time_s),
+        "singularity": {side: r.to_dict() for side, r in twin_singularity_report(twin, pose, time_s).items()},
         "input_limited_samples": int(np.sum(trajectory.input_limited)),
         "tilt_rate_limited_samples": int(np.sum(trajectory.tilt_rate_limited)),
         "sliders": {
@@ -192,8 +195,17 @@ def register(app: typer.Typer) -> None:
             console.print(f"max displacement  {d['max_abs_displacement_mm']:.1f} mm")
             console.print(f"back to neutral   {d['returned_to_neutral']}   within stroke {d['within_stroke']}")
             console.print(f"every IK limit    {d['reachable']}")
-            for violation in d["limit_violations"]:
-                console.print(f"  {violation}")
+            for side, by_reason in d["violations_by_reason"].items():
+                for reason, found in by_reason.items():
+                    spans = ", ".join(f"{x['from_s']:.3f}–{x['to_s']:.3f} s" for x in found["stretches"])
+                    console.print(f"  {side} robot: {reason}: {found['samples']} samples ({spans})")
+            for side, report in d["singularity"].items():
+                modes = ", ".join(f"{x['from_s']:.3f}–{x['to_s']:.3f} s" for x in report["other_assembly_mode"])
+                console.print(
+                    f"  {side} robot: worst condition number {report['worst_condition_number']:.4g} "
+                    f"at {report['worst_condition_number_time_s']:.3f} s (margin {report['condition_number_max']:g}); "
+                    f"other assembly mode (det J sign changed): {modes or 'never'}"
+                )
             console.print(f"slider peak displacement {max(d['sliders']['peak_displacement_mm']):.1f} mm")
             console.print(f"slider peak speed        {max(d['sliders']['peak_speed_mm_s']):.1f} mm/s")
             for path in d.get("plots", []):

@@ -16,6 +16,7 @@ import numpy as np
 
 from core.errors import InvalidValueError
 from core.robot import MotionLimits, TwinRobot
+from core.twin_kernels import LIMITS_VECTOR_SIZE
 
 
 class LimitOverrideError(InvalidValueError):
@@ -27,6 +28,9 @@ class SessionLimits:
     motion: MotionLimits
     stroke_min_m: np.ndarray  # (12,) right sliders 1–6, then left 1–6
     stroke_max_m: np.ndarray
+    # Smallest clearance between the twin's parts (core.clearance): the robot's, plus the stop margin for
+    # normal motion, so that a controlled stop can brake before the parts meet.
+    clearance_min_m: float = 0.0
 
     @classmethod
     def for_twin(
@@ -38,19 +42,22 @@ class SessionLimits:
             motion=motion,
             stroke_min_m=np.concatenate([r.stroke_min_m for r in robots]),
             stroke_max_m=np.concatenate([r.stroke_max_m for r in robots]),
+            clearance_min_m=twin.parts.clearance_min_m,
         )
 
-    def with_margin(self, fraction: float, stroke_margin_m: float) -> SessionLimits:
-        """Limits for normal motion: every bound pulled in by `fraction`, the strokes by `stroke_margin_m`."""
+    def with_margin(self, fraction: float, stroke_margin_m: float, clearance_margin_m: float = 0.0) -> SessionLimits:
+        """Limits for normal motion: every bound pulled in by `fraction`, the strokes by `stroke_margin_m`,
+        and `clearance_margin_m` more clearance required between parts."""
         scaled = {name: value * (1.0 - fraction) for name, value in asdict(self.motion).items()}
         return SessionLimits(
             motion=replace(self.motion, **scaled),
             stroke_min_m=self.stroke_min_m + stroke_margin_m,
             stroke_max_m=self.stroke_max_m - stroke_margin_m,
+            clearance_min_m=self.clearance_min_m + clearance_margin_m,
         )
 
     def kernel_vector(self) -> np.ndarray:
-        """The (6,) limits vector `twin_command_kernel` reads."""
+        """The (LIMITS_VECTOR_SIZE,) limits vector `twin_command_kernel` reads."""
         m = self.motion
         return np.array(
             [
@@ -60,6 +67,7 @@ class SessionLimits:
                 m.slider_velocity_max_m_s,
                 m.slider_acceleration_max_m_s2,
                 m.drive_force_max_n,
+                self.clearance_min_m,
             ]
         )
 

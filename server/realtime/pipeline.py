@@ -363,9 +363,14 @@ class TickPipeline:
     def _violation_details(self) -> dict[str, Any]:
         code = LimitCode(int(self._violation[0]))
         axis = int(self._violation[1])
+        where: str | None
+        if code is LimitCode.COLLISION:  # the axis field holds the pair of parts
+            where = self.kernels.collision_pair_name(axis)
+        else:
+            where = None if axis < 0 else self.hal.axis_name(axis)
         return {
             "limit": code.label,
-            "axis": None if axis < 0 else self.hal.axis_name(axis),
+            "axis": where,
             "value": float(self._violation[2]),
             "limit_value": float(self._violation[3]),
             "unit": LIMIT_UNITS[code],

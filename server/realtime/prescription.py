@@ -23,7 +23,7 @@ from core.cues import CueSpecError, cue_from_spec
 from core.dynamics import PayloadModel, TwinInverseDynamics
 from core.errors import InvalidValueError
 from core.falls import FallDetectorConfig
-from core.kinematics import LegViolation, twin_inverse_kinematics
+from core.kinematics import LegViolation, twin_inverse_kinematics, twin_singularity_report, violation_stretches
 from core.optimal_cueing import CueingWorkspace, OptimalCueingParameters, OptimalCueingPlanner
 from core.patient import PatientParameters
 from core.perception import head_height_m
@@ -48,8 +48,13 @@ class PrescriptionError(InvalidValueError):
 class PrescriptionRejected(ValueError):  # noqa: N818 — the agreed interface name
     """The prescription would exceed a limit: where (segment, time in it) and which limit."""
 
-    def __init__(self, segment: int, time_s: float, limit: str, value: float, message: str) -> None:
+    def __init__(
+        self, segment: int, time_s: float, limit: str, value: float, message: str, details: dict[str, Any] | None = None
+    ) -> None:
         self.segment, self.time_s, self.limit, self.value = segment, time_s, limit, value
+        # Beyond the first breach: every kinematic limit broken in the segment (by reason, with its stretches)
+        # and each robot's singularity report (worst cond(J) and when, every det J sign change).
+        self.details = details or {}
         super().__init__(message)
 
     def to_dict(self) -> dict[str, Any]:
@@ -59,6 +64,7 @@ class PrescriptionRejected(ValueError):  # noqa: N818 — the agreed interface n
             "limit": self.limit,
             "value": self.value,
             "message": str(self),
+            **self.details,
         }
 
 
@@ -226,7 +232,9 @@ def plan_prescription(
                     ShapingParameters, segment.get("shaping"), f"{prefix}.shaping", ShapingParameters()
                 ),
                 limits=limits,
-                motion_limits=limits.with_margin(config.limit_margin_fraction, config.stroke_margin_m),
+                motion_limits=limits.with_margin(
+                    config.limit_margin_fraction, config.stroke_margin_m, config.clearance_margin_m
+                ),
                 seed=seed + index,
                 cue_samples=round((float(duration) + config.fade_out_s) * control_rate_hz),
                 cueing=cueing,
@@ -393,6 +401,9 @@ def _check_samples(
     forces = dynamics.slider_forces(np.where(unreachable.any(axis=1)[:, None], 0.0, poses), velocity, acceleration)
     violations = np.concatenate([s.violations for s in sides], axis=1)
     singular = (violations & np.uint8(LegViolation.SINGULARITY)) != 0
+    collisions = sides[0].collisions
+    clearance = collisions.clearance_m if collisions is not None else np.full(len(poses), np.inf)
+    clearance_min = segment.motion_limits.clearance_min_m  # the robot's margin plus the stop margin
     base_cone = np.concatenate([s.base_cone_rad for s in sides], axis=1)
     platform_cone = np.concatenate([s.platform_cone_rad for s in sides], axis=1)
     stroke_min, stroke_max = segment.motion_limits.stroke_min_m, segment.motion_limits.stroke_max_m
@@ -423,6 +434,7 @@ def _check_samples(
         ),
         (LimitCode.DRIVE_FORCE, np.abs(forces) > limits.drive_force_max_n, forces, limits.drive_force_max_n),
         (LimitCode.SINGULARITY, singular, singular.astype(float), 0.0),
+        (LimitCode.COLLISION, (~(clearance >= clearance_min))[:, None], clearance[:, None], clearance_min),
     ]
     first: tuple[int, LimitCode, int, float, float] | None = None
     for code, breached, values, limit in checks:
@@ -449,8 +461,18 @@ def _check_samples(
         unit = LIMIT_UNITS[code]
         phase = "cue" if sample < segment.cue_samples else "return to neutral"
         name = code.label.replace("_", " ")
+        times = np.arange(len(poses)) * period
+        details: dict[str, Any] = {"violations_by_reason": violation_stretches(solutions, times)}
         if code is LimitCode.SINGULARITY:
-            detail = "the platform would come too close to (or pass) a singularity"
+            reports = twin_singularity_report(twin, poses, times)
+            details["singularity"] = {side: report.to_dict() for side, report in reports.items()}
+            worst = max(reports.items(), key=lambda item: item[1].worst_condition_number)
+            side, report = worst
+            detail = f"the platform would come too close to (or pass) a singularity; {side} robot: {report.summary()}"
+        elif code is LimitCode.COLLISION and collisions is not None:
+            where = ""
+            pair = collisions.pair_names[int(collisions.closest_pair[sample])]
+            detail = f"collision {pair}: clearance {value * 1e3:.1f} mm against the margin {limit_value * 1e3:.1f} mm"
         elif code is LimitCode.ROD_REACH:
             detail = "a rod could not reach its rail"
         else:
@@ -464,6 +486,7 @@ def _check_samples(
             code.label,
             value,
             f"segment {segment.index} at t = {time_s:.3f} s ({phase}{where}): {detail}",
+            details,
         )
     return sliders_filled
 

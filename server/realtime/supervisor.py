@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
+from core.clearance import IK_EXACT_BELOW_M
 from core.errors import InvalidValueError
 from server.realtime.telemetry import StopReason, SupervisorState
 
@@ -72,6 +73,8 @@ class SupervisorConfig:
     # margin (they are checked against the robot's own limits), so braking from a limit hit is possible.
     limit_margin_fraction: float = 0.05
     stroke_margin_m: float = 0.01
+    # Normal motion keeps this much more clearance between the twin's parts than the robot's own margin.
+    clearance_margin_m: float = 0.02
 
     def __post_init__(self) -> None:
         for item in fields(self):
@@ -84,6 +87,10 @@ class SupervisorConfig:
             raise SupervisorConfigError("watchdog_s", self.watchdog_s, "must be <= 1 s")
         if self.limit_margin_fraction >= 0.5:
             raise SupervisorConfigError("limit_margin_fraction", self.limit_margin_fraction, "must be < 0.5")
+        if self.clearance_margin_m > IK_EXACT_BELOW_M:  # the tick screens pairs for breaches that close only
+            raise SupervisorConfigError(
+                "clearance_margin_m", self.clearance_margin_m, f"must be <= {IK_EXACT_BELOW_M} m"
+            )
         if self.estop_ramp_s > 2.0:
             raise SupervisorConfigError("estop_ramp_s", self.estop_ramp_s, "must be <= 2 s")
 

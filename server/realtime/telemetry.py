@@ -59,6 +59,7 @@ class LimitCode(enum.IntEnum):
     SLIDER_ACCELERATION = 7
     DRIVE_FORCE = 8
     SINGULARITY = 9  # offline check only (core.kinematics' condition-number test)
+    COLLISION = 10  # two parts of the twin closer than the clearance margin (core.clearance)
 
     @property
     def label(self) -> str:
@@ -75,6 +76,7 @@ LIMIT_UNITS = {
     LimitCode.SLIDER_ACCELERATION: "m/s²",
     LimitCode.DRIVE_FORCE: "N",
     LimitCode.SINGULARITY: "",
+    LimitCode.COLLISION: "m",
 }
 
 HAL_STATE_CODES = {state: code for code, state in enumerate(HalState)}

@@ -341,7 +341,7 @@ def test_twin_feet_move_as_one_rigid_body(twin: TwinRobot) -> None:
         expected = origin + stance[:, :3] + (stance_rotation @ (neutral_feet[side][0] - origin))
         np.testing.assert_allclose(moved_feet[side], expected, atol=1e-12)
     distance = np.linalg.norm(moved_feet["left"] - moved_feet["right"], axis=1)
-    np.testing.assert_allclose(distance, 0.5, atol=1e-12)
+    np.testing.assert_allclose(distance, 0.4, atol=1e-12)  # the default layout's feet (issue 13; was 0.5)
     # Both platforms turn by the stance rotation (relative to their neutral orientation).
     platforms = twin_platform_poses(twin, stance)
     for side in twin.sides:
@@ -377,5 +377,7 @@ def test_twin_left_robot_sees_the_mirrored_motion_of_the_right(twin: TwinRobot) 
 
 def test_twin_unreachable_pose_names_the_robot(twin: TwinRobot) -> None:
     with pytest.raises(UnreachablePoseError, match="left robot") as error:
-        twin_inverse_kinematics(twin, np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.2, 0.0, 0.0]]))
+        # 0.25 rad of stance roll: beyond the default layout's ±12.0° (the old layout stopped at ±11.2°, so
+        # 0.2 rad sufficed before issue 13; the side-by-side default reaches it).
+        twin_inverse_kinematics(twin, np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.25, 0.0, 0.0]]))
     assert {v.pose_index for v in error.value.violations} == {1}

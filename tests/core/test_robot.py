@@ -227,12 +227,13 @@ def test_mirrored_robot_is_the_mirror_image(robot: SSPRobot) -> None:
     assert mirrored.mirrored() == robot
 
 
-def test_default_twin_places_the_feet_half_a_metre_apart(twin: TwinRobot) -> None:
+def test_default_twin_places_the_feet_side_by_side_0_4_m_apart(twin: TwinRobot) -> None:
     assert twin.robot_for("right") == twin.robot
     assert twin.robot_for("left") == twin.robot.mirrored()
     right = np.add(twin.right.base_origin_m, twin.right.foot_plate_offset_m)
     left = np.add(twin.left.base_origin_m, twin.left.foot_plate_offset_m)
-    assert math.isclose(float(np.linalg.norm(left - right)), 0.5)
+    assert math.isclose(float(np.linalg.norm(left - right)), 0.4)  # issue 13 layout study (was 0.5)
+    assert math.isclose(float(left[0] - right[0]), 0.0, abs_tol=1e-12)  # side by side, not one ahead
 
 
 def test_unknown_twin_side_is_refused(twin: TwinRobot) -> None:

@@ -13,5 +13,6 @@ def test_violation_codes_match_the_telemetry_limit_codes() -> None:
         LimitCode.TILT,
         LimitCode.SLIDER_VELOCITY,
         LimitCode.SLIDER_ACCELERATION,
+        LimitCode.COLLISION,
     ):
         assert getattr(twin_kernels, code.name) == code.value, code.name

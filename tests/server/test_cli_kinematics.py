@@ -88,3 +88,31 @@ def test_workspace_json_and_plots(tmp_path: Path) -> None:
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert len(pngs) >= 3
     assert all((tmp_path / name).stat().st_size > 1000 for name in pngs)
+
+
+def test_ik_twin_json_contract() -> None:
+    """`ik --twin --pose X Y Z ROLL PITCH YAW --json`: a stance pose relative to neutral (issue 13)."""
+    code, data = run_json("ik", "--twin", "--pose", "0", "0", "0", "0", "0", "0")
+    assert code == 0, data
+    assert data["reachable"] is True and data["violations"] == []
+    for side in ("right", "left"):
+        robot = data["robots"][side]
+        assert len(robot["sliders_mm"]) == 6
+        assert [len(row) for row in robot["slider_joints_mm"]] == [3] * 6
+        assert [len(row) for row in robot["platform_joints_mm"]] == [3] * 6
+        # Each rod end at the platform is one rod length from its end at the slider.
+        rods = [
+            sum((p - s) ** 2 for p, s in zip(platform, slider, strict=True)) ** 0.5
+            for platform, slider in zip(robot["platform_joints_mm"], robot["slider_joints_mm"], strict=True)
+        ]
+        assert rods == pytest.approx([1000.0] * 6, abs=1e-6)
+    right_foot, left_foot = data["foot_plates_mm"]
+    width = sum((a - b) ** 2 for a, b in zip(right_foot, left_foot, strict=True)) ** 0.5
+    assert 150.0 <= width <= 450.0
+
+
+def test_ik_twin_reports_an_unreachable_stance_pose_with_its_violations() -> None:
+    code, data = run_json("ik", "--twin", "--pose", "0", "0", "0", "30", "0", "0")
+    assert code != 0
+    assert data["reachable"] is False and data["violations"]
+    assert all("robot" in violation for violation in data["violations"])

@@ -322,13 +322,13 @@ def test_c3d_force_platforms_sit_under_each_foot(c3d_file, columns):
     assert [labels[i - 1] for i in channel[:, 1]] == ["Fx2", "Fy2", "Fz2", "Px2", "Py2", "Mz2"]
     corners = c3d_parameter(c3d_file, "FORCE_PLATFORM", "CORNERS")
     assert corners.shape == (3, 4, 2)
-    # Default twin (core/robot.py): bases at y = -/+0.5 m, plates 0.25 m inboard, platform 0.6 m high.
-    np.testing.assert_allclose(corners.mean(axis=1).T, [[0.0, -0.25, 0.6], [0.0, 0.25, 0.6]], atol=1e-6)
+    # Default twin (core/robot.py, since issue 13): feet side by side 0.4 m apart, platform 0.6 m high.
+    np.testing.assert_allclose(corners.mean(axis=1).T, [[0.0, -0.2, 0.6], [0.0, 0.2, 0.6]], atol=1e-6)
     length_x, width_y = DEFAULT_FOOT_PLATE_SIZE_M
     np.testing.assert_allclose(corners[:, 0, 0] - corners[:, 2, 0], [length_x, width_y, 0.0], atol=1e-6)
     # ezc3d's own force-platform reader puts the COP where the plate frame says it is.
     right = c3d_file["data"]["platform"][0]
-    expected_cop = np.array([columns["plate_cop_m"][:, 0, 0], -0.25 + columns["plate_cop_m"][:, 0, 1]])
+    expected_cop = np.array([columns["plate_cop_m"][:, 0, 0], -0.2 + columns["plate_cop_m"][:, 0, 1]])
     np.testing.assert_allclose(right["center_of_pressure"][:2, :SAMPLE_COUNT], expected_cop, atol=1e-6)
     np.testing.assert_allclose(right["force"][2, :SAMPLE_COUNT], columns["plate_force_z_n"][:, 0], rtol=1e-6)
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from core.patient import PatientParameters
-from core.robot import GRAVITY_M_S2, TwinRobot
+from core.robot import GRAVITY_M_S2, TwinRobot, named_twin
 from server.hal.base import CommandRejectedError, DriveState, HalCommand, HalError, HalReading, HalState
 from server.hal.sim.backend import SimHal
 from server.hal.sim.drives import ServoParameters
@@ -135,7 +135,16 @@ def _step_response(twin: TwinRobot, servo: ServoParameters, step_m: float, ticks
     return (positions - start) / step_m, reading
 
 
-def test_sim_reaches_commanded_positions_with_the_configured_servo_dynamics(twin: TwinRobot) -> None:
+# The servo-dynamics bands below were calibrated on the layout before issue 13 (feet 0.25 m inboard of each
+# platform). On today's default (feet cantilevered 0.68 m) the sliders carry more of the patient's moment
+# (static drive force up to 583 N instead of 338 N): slider 5 reaches 0.48 of a step at one time constant
+# and a force-limited step settles to 0.18 mm in 200 ms. The servo model is the subject here, so these
+# keep the calibration layout (MuJoCo contacts are off by default, so its crossing rods do not matter).
+SERVO_CALIBRATION_TWIN = named_twin("legacy-interleaved")
+
+
+def test_sim_reaches_commanded_positions_with_the_configured_servo_dynamics() -> None:
+    twin = SERVO_CALIBRATION_TWIN
     servo = ServoParameters(position_gain_per_s=60.0)
     response, _ = _step_response(twin, servo, 0.001, 400)
     time_constant_ticks = round(1.0 / servo.position_gain_per_s / PERIOD_S)
@@ -146,9 +155,9 @@ def test_sim_reaches_commanded_positions_with_the_configured_servo_dynamics(twin
     assert np.all(slower[time_constant_ticks] < response[time_constant_ticks] - 0.2)
 
 
-def test_drive_velocity_and_force_limits_hold(twin: TwinRobot) -> None:
+def test_drive_velocity_and_force_limits_hold() -> None:
     servo = ServoParameters(velocity_limit_m_s=0.02, force_limit_n=1500.0)
-    hal, reading, command = _active(twin, servo=servo)
+    hal, reading, command = _active(SERVO_CALIBRATION_TWIN, servo=servo)
     start = reading.positions_m.copy()
     command.positions_m += 0.0015
     progress, peak_force = [], 0.0

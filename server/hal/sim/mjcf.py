@@ -50,6 +50,10 @@ class SimModelOptions:
     # damped) with impedance 0.9999, so that the loops yield by 0.01 % of the unconstrained acceleration.
     constraint_solimp: tuple[float, float, float] = (0.9999, 0.9999, 0.001)
     integrator: str = "implicitfast"
+    # Contacts between the rods and between the platforms (and their foot plates): an independent
+    # cross-check of core.clearance. Off by default: the servo and dynamics cross-checks were calibrated
+    # without, and a layout that can be built never touches (issue 13).
+    contacts: bool = False
 
 
 def _vector(values: np.ndarray) -> str:
@@ -101,6 +105,8 @@ def _robot_xml(twin: TwinRobot, side: str, options: SimModelOptions, lines: list
     mass = robot.mass
     rod_mass = mass.rod_mass_kg if options.include_rods else 0.0
     length = robot.rod_length_m
+    # Rods and platforms collide with each other; every other geom keeps contype = conaffinity = 0.
+    contact = ' contype="1" conaffinity="1"' if options.contacts else ""
     for index in range(6):
         name = f"{side}_slider{index + 1}"
         position = base_origin + base_rotation @ np.array(
@@ -127,7 +133,8 @@ def _robot_xml(twin: TwinRobot, side: str, options: SimModelOptions, lines: list
         else:  # a moving body needs some mass; a gram at the slider joint does not change the forces
             lines.append('    <inertial pos="0 0 0" mass="0.001" diaginertia="1e-6 1e-6 1e-6"/>')
         lines += [
-            f'    <geom type="capsule" fromto="0 0 0 {_vector(rod)}" size="{ROD_RADIUS_M}" rgba="0.7 0.7 0.75 1"/>',
+            f'    <geom name="{side}_rod{index + 1}" type="capsule" fromto="0 0 0 {_vector(rod)}" '
+            f'size="{ROD_RADIUS_M}" rgba="0.7 0.7 0.75 1"{contact}/>',
             f'    <site name="{side}_rod{index + 1}_end" pos="{_vector(rod)}"/>',
             "  </body>",
             "</body>",
@@ -145,14 +152,16 @@ def _robot_xml(twin: TwinRobot, side: str, options: SimModelOptions, lines: list
         f'quat="{_vector(_quaternion(neutral_world))}">',
         f'  <freejoint name="{side}_platform"/>',
         _inertial(mass.platform_mass_kg, np.asarray(mass.platform_com_m), np.diag(mass.platform_inertia_kg_m2)),
-        f'  <geom type="cylinder" size="{robot.platform_radius_m:.4f} 0.02" pos="0 0 -0.02" rgba="0.2 0.45 0.7 1"/>',
+        f'  <geom name="{side}_platform" type="cylinder" size="{robot.platform_radius_m:.4f} 0.02" pos="0 0 -0.02" '
+        f'rgba="0.2 0.45 0.7 1"{contact}/>',
     ]
     for index, joint in enumerate(robot.platform_joints_m, start=1):
         lines.append(f'  <site name="{side}_platform_joint{index}" pos="{_vector(joint)}"/>')
     plate = np.asarray(placement.foot_plate_offset_m, dtype=float)
     lines += [
         f'  <body name="{side}_foot_plate" pos="{_vector(plate)}">',
-        '    <geom type="box" size="0.15 0.08 0.005" pos="0 0 0.005" rgba="0.8 0.6 0.3 1"/>',
+        f'    <geom name="{side}_foot_plate" type="box" size="0.15 0.08 0.005" pos="0 0 0.005" '
+        f'rgba="0.8 0.6 0.3 1"{contact}/>',
         f'    <site name="{side}_plate" pos="0 0 0"/>',
     ]
     if options.payload is not None and options.payload.mass_kg > 0.0:
@@ -189,6 +198,15 @@ def twin_mjcf(twin: TwinRobot, options: SimModelOptions | None = None) -> str:
     solimp = _vector(np.asarray(options.constraint_solimp))
     body = "\n    ".join(lines)
     equality = "\n    ".join(equalities)
+    # A rod meets its own platform at its spherical joint: that pair shares a joint, it is no contact.
+    excludes = "\n    ".join(
+        f'<exclude body1="{side}_rod{i}" body2="{side}_platform"/>' for side in twin.sides for i in range(1, 7)
+    )
+    option_attributes = (
+        f'timestep="{options.timestep_s:.10g}" gravity="0 0 {-GRAVITY_M_S2:.10g}" integrator="{options.integrator}"'
+    )
+    contact_flag = "" if options.contacts else '\n    <flag contact="disable"/>'
+    contact_section = f"<contact>\n    {excludes}\n  </contact>" if options.contacts else ""
     # Actuator force = ctrl + b0 + b1·q + b2·q̇: the drives put their damping and the brake's spring in the
     # affine bias so that the implicit integrator treats them implicitly (stable at stiff gains).
     force_limit = twin.robot.limits.drive_force_max_n
@@ -213,8 +231,7 @@ def twin_mjcf(twin: TwinRobot, options: SimModelOptions | None = None) -> str:
         plate_sensors += '\n    <tendonpos name="harness_length" tendon="harness"/>'
     return f"""<mujoco model={quoteattr("ssp_rehab_twin")}>
   <compiler angle="radian" inertiafromgeom="false" autolimits="true"/>
-  <option timestep="{options.timestep_s:.10g}" gravity="0 0 {-GRAVITY_M_S2:.10g}" integrator="{options.integrator}">
-    <flag contact="disable"/>
+  <option {option_attributes}>{contact_flag}
   </option>
   <default>
     <equality solref="{timeref:.10g} 1" solimp="{solimp}"/>
@@ -226,6 +243,7 @@ def twin_mjcf(twin: TwinRobot, options: SimModelOptions | None = None) -> str:
   <equality>
     {equality}
   </equality>
+  {contact_section}
   {tendon}
   <actuator>
     {actuators}
