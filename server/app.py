@@ -130,6 +130,7 @@ def _api_router() -> APIRouter:
     from server.patients.routes import router as patients_router
     from server.prescriptions.preview import router as prescription_preview_router
     from server.prescriptions.routes import router as prescriptions_router
+    from server.scheduling.routes import public_router as scheduling_public_router
     from server.scheduling.routes import router as scheduling_router
     from server.sessions.balance import router as balance_router
     from server.sessions.routes import estop_router, websocket_router
@@ -153,6 +154,7 @@ def _api_router() -> APIRouter:
         prescription_preview_router,
         prescriptions_router,
         scheduling_router,
+        scheduling_public_router,
         sessions_router,
         estop_router,
         audit_router,
@@ -243,12 +245,38 @@ def create_app(
             allow_headers=["Authorization", "Content-Type"],
         )
     _error_handlers(app)
+    _install_audit_journal(app, settings)
     app.include_router(_api_router())
     frontend = settings.resolved_frontend_dir()
     if frontend is not None:
         app.mount("/", StaticFiles(directory=frontend, html=True), name="frontend")
     _install_access_log_redaction()
     return app
+
+
+def _install_audit_journal(app: FastAPI, settings: Settings) -> None:
+    """Audited reads go through a write-ahead journal in the data directory (server.audit.journal): opened,
+    and what a crashed process left replayed, once the database is up; drained when the service stops."""
+    from server.audit.journal import AuditJournal
+    from server.audit.service import use_journal
+
+    journal = AuditJournal(settings.data_dir / "audit-journal", drain_interval_s=settings.audit_drain_interval_s)
+    app.state.audit_journal = journal
+    inner_lifespan = app.router.lifespan_context
+
+    @contextlib.asynccontextmanager
+    async def lifespan_with_journal(app: FastAPI) -> AsyncIterator[Any]:
+        async with inner_lifespan(app) as state:
+            database: Database = app.state.database
+            await asyncio.to_thread(journal.open, database)
+            use_journal(database.engine, journal)
+            try:
+                yield state
+            finally:
+                use_journal(database.engine, None)
+                await asyncio.to_thread(journal.close)
+
+    app.router.lifespan_context = lifespan_with_journal
 
 
 def _version() -> str:
