@@ -246,12 +246,20 @@ def create_app(
         )
     _error_handlers(app)
     _install_audit_journal(app, settings)
+    _install_observability(app, settings)
     app.include_router(_api_router())
     frontend = settings.resolved_frontend_dir()
     if frontend is not None:
         app.mount("/", StaticFiles(directory=frontend, html=True), name="frontend")
     _install_access_log_redaction()
     return app
+
+
+def _install_observability(app: FastAPI, settings: Settings) -> None:
+    """GET /metrics (Prometheus), request ids and latency by route, the robot worker's metrics tap."""
+    from server.observability.service import install_observability
+
+    install_observability(app, settings)
 
 
 def _install_audit_journal(app: FastAPI, settings: Settings) -> None:

@@ -67,7 +67,9 @@ def register(app: typer.Typer) -> None:
             raise fail(_validation_message(error)) from error
         except DescriptionError as error:
             raise fail(str(error)) from error
-        logging.basicConfig(level=logging.INFO, format="%(levelname)s [%(name)s] %(message)s")
+        from server.observability.logs import configure_logging
+
+        configure_logging(settings.log_format)
         if host not in ("127.0.0.1", "localhost", "::1") and not settings.cookie_secure:
             logging.getLogger(__name__).warning(
                 "listening on %s without SSP_REHAB_COOKIE_SECURE=true: put the service behind HTTPS", host
@@ -76,7 +78,8 @@ def register(app: typer.Typer) -> None:
             f"ssp-rehab console on http://{host}:{port}/  (API docs: /docs)\n"
             f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}"
         )
-        uvicorn.run(application, host=host, port=port, log_level="info")
+        # log_config=None: keep the structured (JSON) logging configured above for uvicorn's loggers too.
+        uvicorn.run(application, host=host, port=port, log_level="info", log_config=None)
 
     @app.command("create-user")
     def create_user(
