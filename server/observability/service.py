@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import hmac
+import logging
 import time
 import uuid
 from collections.abc import AsyncIterator
@@ -19,7 +20,9 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from server.observability.metrics import ServiceMetrics, WorkerTap
 from server.settings import Settings
 
-logger = structlog.get_logger("server.requests")
+# A stdlib logger: with the service's logging set up (server.observability.logs) its lines are JSON with the
+# request and run ids; where nobody set up logging (tests, `uvicorn --factory`) INFO costs one level check.
+logger = logging.getLogger("server.requests")
 REQUEST_ID_HEADER = b"x-request-id"
 
 
@@ -70,13 +73,15 @@ class RequestObservation:
             elapsed = time.perf_counter() - started
             template = self._template(scope)
             self.metrics.request_seconds.labels(scope["method"], template, str(status_code)).observe(elapsed)
-            if template != "/metrics":
+            if template != "/metrics" and logger.isEnabledFor(logging.INFO):
                 logger.info(
                     "request",
-                    method=scope["method"],
-                    route=template,
-                    status=status_code,
-                    duration_ms=round(elapsed * 1e3, 2),
+                    extra={
+                        "method": scope["method"],
+                        "route": template,
+                        "status": status_code,
+                        "duration_ms": round(elapsed * 1e3, 2),
+                    },
                 )
             structlog.contextvars.unbind_contextvars("request_id", "run_id")
 

@@ -78,7 +78,7 @@ def schedule_week(
         dt.date | None, Query(description="Any day of the wanted clinic-local week; default: today.")
     ] = None,
     robot: Annotated[RobotName | None, Query()] = None,
-) -> WeekOut:
+) -> Response:
     """The clinic-local week (Monday 00:00 to Monday 00:00 in SSP_REHAB_TIMEZONE) with each booking's
     patient name and run summary: everything the week view shows, in one request."""
     answer = service.week(session=session, day=day or dt.datetime.now(zone).date(), zone=zone, robot=robot)
@@ -87,7 +87,8 @@ def schedule_week(
     audit.record_read(
         session=session, user_id=user.id, action="list", resource_type="patient", details={"patient_ids": patient_ids}
     )
-    return answer
+    # Serialised once by pydantic-core, not validated again on the way out (response_model only documents it).
+    return Response(answer.model_dump_json(), media_type="application/json")
 
 
 @router.post(

@@ -18,9 +18,10 @@ import secrets
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 from zoneinfo import ZoneInfo
 
-from sqlalchemy import func, or_, select, text
+from sqlalchemy import Select, func, or_, select, text
 from sqlalchemy.orm import Session
 
 from server.audit import service as audit
@@ -31,7 +32,7 @@ from server.prescriptions import service as prescriptions
 from server.prescriptions.models import PrescriptionVersion
 from server.scheduling import clinic_time
 from server.scheduling.models import CalendarToken, ScheduledSession, ScheduleSeries
-from server.scheduling.schemas import ScheduleCreate, ScheduledSessionOut, ScheduleUpdate, WeekBookingOut, WeekOut
+from server.scheduling.schemas import ScheduleCreate, ScheduledSessionOut, ScheduleUpdate, WeekOut
 from server.sessions.models import SessionRun
 from server.users.models import User
 
@@ -409,9 +410,9 @@ def calendar_token_issued_at(*, session: Session, therapist_id: int) -> dt.datet
 # --- the week view: one clinic-local week, with what the page shows, in one query ------------------------
 
 
-def week(*, session: Session, day: dt.date, zone: ZoneInfo, robot: str | None = None) -> WeekOut:
-    """Bookings starting in the clinic-local week holding `day`, with patient names and run summaries."""
-    start_local, end_local = clinic_time.week_bounds(day, zone)
+def week_query(start: dt.datetime, end: dt.datetime, robot: str | None = None) -> Select[Any]:
+    """Bookings starting in [start, end), with prescription numbers, patient name and record number, and
+    the run count and last run outcome: one query for the whole week view."""
     runs = (
         select(
             SessionRun.scheduled_session_id.label("booking_id"),
@@ -436,29 +437,35 @@ def week(*, session: Session, day: dt.date, zone: ZoneInfo, robot: str | None = 
         .join(Patient, Patient.id == ScheduledSession.patient_id)
         .outerjoin(runs, runs.c.booking_id == ScheduledSession.id)
         .outerjoin(last_run, last_run.c.id == runs.c.last_run_id)
-        .where(ScheduledSession.start_utc >= start_local, ScheduledSession.start_utc < end_local)
+        .where(ScheduledSession.start_utc >= start, ScheduledSession.start_utc < end)
         .order_by(ScheduledSession.start_utc, ScheduledSession.id)
     )
-    if robot is not None:
-        query = query.where(ScheduledSession.robot == robot)
+    return query if robot is None else query.where(ScheduledSession.robot == robot)
+
+
+def week(*, session: Session, day: dt.date, zone: ZoneInfo, robot: str | None = None) -> WeekOut:
+    """Bookings starting in the clinic-local week holding `day`, with patient names and run summaries."""
+    start_local, end_local = clinic_time.week_bounds(day, zone)
+    query = week_query(start_local, end_local, robot)
     bookings = [
-        WeekBookingOut.model_validate(
-            {
-                **_out_fields(booking, prescription_id, version, zone),
-                "patient_name": name,
-                "patient_identifier": identifier,
-                "run_count": run_count,
-                "last_run_outcome": last_outcome,
-            }
-        )
+        {
+            **_out_fields(booking, prescription_id, version, zone),
+            "patient_name": name,
+            "patient_identifier": identifier,
+            "run_count": run_count,
+            "last_run_outcome": last_outcome,
+        }
         for booking, prescription_id, version, name, identifier, run_count, last_outcome in session.execute(query)
     ]
     monday = start_local.date()
-    return WeekOut(
-        timezone=zone.key,
-        start_local=start_local,
-        end_local=end_local,
-        previous_week=monday - dt.timedelta(days=7),
-        next_week=monday + dt.timedelta(days=7),
-        bookings=bookings,
+    # One validation of the whole week (in pydantic-core), not one Python call per booking.
+    return WeekOut.model_validate(
+        {
+            "timezone": zone.key,
+            "start_local": start_local,
+            "end_local": end_local,
+            "previous_week": monday - dt.timedelta(days=7),
+            "next_week": monday + dt.timedelta(days=7),
+            "bookings": bookings,
+        }
     )

@@ -67,7 +67,10 @@ def clinic_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Path
                       "height_m": 1.65, "body_mass_kg": 60.0, "diagnosis": "stroke", "affected_side": "left"},
                 headers=headers,
             ).json()  # fmt: skip
-            segment = {"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.5}, "duration_s": 30}
+            segment = {
+                "cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.5},
+                "duration_s": 30,
+            }
             httpx.post(
                 f"{base}/api/v1/prescriptions",
                 json={"patient_id": patient["id"], "name": f"Sway {identifier}", "segments": [segment]},
@@ -99,7 +102,9 @@ def _heading(page: object) -> object:
     return page.get_by_role("heading", name="Schedule: week of")  # type: ignore[attr-defined]
 
 
-def test_week_navigation_and_booking_in_clinic_local_time(clinic_service: dict[str, object], chromium_path: Path) -> None:
+def test_week_navigation_and_booking_in_clinic_local_time(
+    clinic_service: dict[str, object], chromium_path: Path
+) -> None:
     base = str(clinic_service["base_url"])
     second_patient = clinic_service["patients"][1]  # type: ignore[index]
     with playwright_api.sync_playwright() as playwright:
@@ -111,9 +116,11 @@ def test_week_navigation_and_booking_in_clinic_local_time(clinic_service: dict[s
             schedule_requests: list[str] = []
             page.on(
                 "request",
-                lambda request: schedule_requests.append(request.url)
-                if "/api/v1/sessions" in request.url or "/api/v1/schedule" in request.url
-                else None,
+                lambda request: (
+                    schedule_requests.append(request.url)
+                    if "/api/v1/sessions" in request.url or "/api/v1/schedule" in request.url
+                    else None
+                ),
             )
             # The week before the spring change (clocks go forward on Sunday 30 March 2031).
             page.goto(f"{base}/#/schedule?week=2031-03-26")
