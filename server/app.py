@@ -141,6 +141,7 @@ def _api_router() -> APIRouter:
     from server.patients.routes import router as patients_router
     from server.prescriptions.preview import router as prescription_preview_router
     from server.prescriptions.routes import router as prescriptions_router
+    from server.scheduling.routes import public_router as scheduling_public_router
     from server.scheduling.routes import router as scheduling_router
     from server.sessions.balance import router as balance_router
     from server.sessions.routes import estop_router, websocket_router
@@ -165,6 +166,7 @@ def _api_router() -> APIRouter:
         prescription_preview_router,
         prescriptions_router,
         scheduling_router,
+        scheduling_public_router,
         sessions_router,
         estop_router,
         audit_router,
@@ -249,6 +251,8 @@ def create_app(
     app.state.viz = None
     _security_middleware(app, settings)
     _error_handlers(app)
+    _install_audit_journal(app, settings)
+    _install_observability(app, settings)
     document_security_responses(app)
     app.include_router(_api_router())
     frontend = settings.resolved_frontend_dir()
@@ -282,6 +286,38 @@ def _security_middleware(app: FastAPI, settings: Settings) -> None:
     build_stack = app.build_middleware_stack
     viz_port = settings.viz_port if settings.viz_enabled else None
     app.build_middleware_stack = lambda: SecurityHeadersMiddleware(build_stack(), viz_port=viz_port)  # type: ignore[method-assign]
+
+
+def _install_observability(app: FastAPI, settings: Settings) -> None:
+    """GET /metrics (Prometheus), request ids and latency by route, the robot worker's metrics tap."""
+    from server.observability.service import install_observability
+
+    install_observability(app, settings)
+
+
+def _install_audit_journal(app: FastAPI, settings: Settings) -> None:
+    """Audited reads go through a write-ahead journal in the data directory (server.audit.journal): opened,
+    and what a crashed process left replayed, once the database is up; drained when the service stops."""
+    from server.audit.journal import AuditJournal
+    from server.audit.service import use_journal
+
+    journal = AuditJournal(settings.data_dir / "audit-journal", drain_interval_s=settings.audit_drain_interval_s)
+    app.state.audit_journal = journal
+    inner_lifespan = app.router.lifespan_context
+
+    @contextlib.asynccontextmanager
+    async def lifespan_with_journal(app: FastAPI) -> AsyncIterator[Any]:
+        async with inner_lifespan(app) as state:
+            database: Database = app.state.database
+            await asyncio.to_thread(journal.open, database)
+            use_journal(database.engine, journal)
+            try:
+                yield state
+            finally:
+                use_journal(database.engine, None)
+                await asyncio.to_thread(journal.close)
+
+    app.router.lifespan_context = lifespan_with_journal
 
 
 def _version() -> str:

@@ -10,9 +10,12 @@ import ipaddress
 import secrets
 from pathlib import Path
 from typing import Literal
+from zoneinfo import ZoneInfo
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from server.scheduling.clinic_time import is_zone_name, machine_zone_name
 
 Backend = Literal["sim", "kinematic", "canopen"]
 SECRET_KEY_FILE = "secret_key"
@@ -67,6 +70,21 @@ class Settings(BaseSettings):
         "(twice the failures within four times the window, and so on).",
     )
 
+    timezone: str = Field(
+        default_factory=machine_zone_name,
+        description="The clinic's IANA time zone (e.g. Europe/Berlin): bookings keep their wall-clock time in it;"
+        " default: the machine's zone.",
+    )
+    metrics_token: SecretStr | None = Field(
+        default=None, description="Bearer token that opens GET /metrics (Prometheus); unset: /metrics is closed."
+    )
+    audit_drain_interval_s: float = Field(
+        default=0.25, gt=0, le=3600, description="How often journaled audit reads are moved into the database (s)."
+    )
+    log_format: Literal["json", "console"] = Field(
+        default="json", description="Service logs: JSON lines (structlog) or human-readable console lines."
+    )
+
     telemetry_rate_hz: float = Field(default=30.0, gt=0, le=120, description="WebSocket telemetry frame rate.")
     log_flush_interval_s: float = Field(default=1.0, gt=0, le=60, description="How often telemetry chunks are written.")
     viz_enabled: bool = Field(default=True, description="Serve the live 3D view (viser) on its own port.")
@@ -91,6 +109,16 @@ class Settings(BaseSettings):
         if not loopback:
             raise ValueError(f"viz_host = {value!r}: must be a loopback address (127.0.0.0/8, ::1 or localhost)")
         return value
+
+    @field_validator("timezone")
+    @classmethod
+    def _known_zone(cls, value: str) -> str:
+        if not is_zone_name(value):
+            raise ValueError(f"timezone = {value!r}: not an IANA time-zone name (such as Europe/Berlin)")
+        return value
+
+    def clinic_zone(self) -> ZoneInfo:
+        return ZoneInfo(self.timezone)
 
     def resolved_database_url(self) -> str:
         if self.database_url:

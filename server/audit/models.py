@@ -22,3 +22,5 @@ class AuditEntry(Base):
     resource_type: Mapped[str] = mapped_column(String(32))
     resource_id: Mapped[int | None] = mapped_column(default=None)
     details: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    # Set for entries that came through the audit journal (reads): makes a replay insert them once only.
+    journal_id: Mapped[str | None] = mapped_column(String(32), unique=True, default=None)

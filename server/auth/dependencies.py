@@ -14,6 +14,7 @@ from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy import select
 from starlette.requests import HTTPConnection
 
 from server.auth.models import AuthSession
@@ -80,16 +81,18 @@ async def authenticated_claims(
 
 
 def user_for_claims(session: SessionDep, claims: TokenClaims) -> User | None:
-    login = session.get(AuthSession, claims.session_id)
-    if (
-        login is None
-        or login.revoked_at is not None
-        or login.expires_at <= utc_now()
-        or login.user_id != claims.user_id
-    ):
-        return None
-    user = session.get(User, claims.user_id)
-    return user if user is not None and user.is_active else None
+    # One query for the login session and the account: this runs on every authenticated request.
+    return session.scalar(
+        select(User)
+        .join(AuthSession, AuthSession.user_id == User.id)
+        .where(
+            AuthSession.id == claims.session_id,
+            AuthSession.revoked_at.is_(None),
+            AuthSession.expires_at > utc_now(),
+            User.id == claims.user_id,
+            User.is_active.is_(True),
+        )
+    )
 
 
 def current_user(session: SessionDep, claims: Annotated[TokenClaims, Depends(authenticated_claims)]) -> User:

@@ -67,7 +67,9 @@ def register(app: typer.Typer) -> None:
             raise fail(_validation_message(error)) from error
         except DescriptionError as error:
             raise fail(str(error)) from error
-        logging.basicConfig(level=logging.INFO, format="%(levelname)s [%(name)s] %(message)s")
+        from server.observability.logs import configure_logging
+
+        configure_logging(settings.log_format)
         if host not in ("127.0.0.1", "localhost", "::1") and not settings.cookie_secure:
             logging.getLogger(__name__).warning(
                 "listening on %s without SSP_REHAB_COOKIE_SECURE=true: put the service behind HTTPS", host
@@ -77,8 +79,9 @@ def register(app: typer.Typer) -> None:
             f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}"
         )
         # X-Forwarded-For is believed only from SSP_REHAB_TRUSTED_PROXIES, by the app itself (server.security);
-        # uvicorn's own default would trust it from loopback.
-        uvicorn.run(application, host=host, port=port, log_level="info", proxy_headers=False)
+        # uvicorn's own default would trust it from loopback. log_config=None keeps the structured (JSON)
+        # logging configured above for uvicorn's loggers too.
+        uvicorn.run(application, host=host, port=port, log_level="info", proxy_headers=False, log_config=None)
 
     @app.command("create-user")
     def create_user(

@@ -1,4 +1,5 @@
-"""Patient service functions. Each read or change writes an audit entry in the same transaction."""
+"""Patient service functions. Each change writes an audit entry in its transaction; each read is audited
+through the audit journal (durable, off the request's database path: `server.audit.journal`)."""
 
 from __future__ import annotations
 
@@ -38,14 +39,12 @@ def create_patient(*, session: Session, data: PatientCreate, actor_id: int) -> P
     return patient
 
 
-@writes
 def read_patient(*, session: Session, patient_id: int, actor_id: int) -> Patient:
     patient = find_patient(session=session, patient_id=patient_id)
-    audit.record(session=session, user_id=actor_id, action="read", resource_type="patient", resource_id=patient.id)
+    audit.record_read(session=session, user_id=actor_id, action="read", resource_type="patient", resource_id=patient.id)
     return patient
 
 
-@writes
 def list_patients(
     *,
     session: Session,
@@ -63,7 +62,7 @@ def list_patients(
         query = query.where(func.lower(Patient.diagnosis) == diagnosis.lower())
     patients = list(session.scalars(query))
     # A listing shows names and record numbers, so it counts as reading each of those records.
-    audit.record(
+    audit.record_read(
         session=session,
         user_id=actor_id,
         action="list",

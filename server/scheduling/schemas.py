@@ -1,11 +1,21 @@
-"""Scheduling requests and answers. Times are timezone-aware ISO 8601; they are stored in UTC."""
+"""Scheduling requests and answers. Times are timezone-aware ISO 8601 (`start`), or a clinic-local wall
+time without offset (`start_local`, read in SSP_REHAB_TIMEZONE); they are stored in UTC and answered in
+both UTC and clinic-local time."""
 
 from __future__ import annotations
 
 import datetime as dt
 from typing import Annotated, Literal
 
-from pydantic import AwareDatetime, ConfigDict, Field, StringConstraints, field_validator
+from pydantic import (
+    AwareDatetime,
+    ConfigDict,
+    Field,
+    NaiveDatetime,
+    StringConstraints,
+    field_validator,
+    model_validator,
+)
 
 from server.api_types import MAX_ID, LongText, RequestModel, ResponseModel
 
@@ -17,9 +27,16 @@ LATEST_START = dt.datetime(2100, 1, 1, tzinfo=dt.UTC)
 
 
 def _start_in_range(value: dt.datetime | None) -> dt.datetime | None:
-    if value is not None and not EARLIEST_START <= value < LATEST_START:
+    # Naive local times are compared as if UTC: the range is a sanity bound, not a precise limit.
+    if value is not None and not EARLIEST_START <= value.replace(tzinfo=value.tzinfo or dt.UTC) < LATEST_START:
         raise ValueError(f"must lie between {EARLIEST_START:%Y-%m-%d} and {LATEST_START:%Y-%m-%d}")
     return value
+
+
+StartLocal = Annotated[
+    NaiveDatetime | None,
+    Field(description="Clinic-local wall time without offset (e.g. 2031-03-04T09:00), instead of `start`."),
+]
 
 
 class Recurrence(RequestModel):
@@ -34,12 +51,19 @@ class ScheduleCreate(RequestModel):
     prescription_version: RecordId | None = Field(None, description="Default: the prescription's latest version.")
     robot: RobotName
     therapist_id: RecordId | None = Field(None, description="Default: the user making the booking.")
-    start: AwareDatetime
+    start: AwareDatetime | None = Field(None, description="With its UTC offset; or give `start_local`.")
+    start_local: StartLocal = None
     duration_s: DurationS
     notes: LongText = ""
     recurrence: Recurrence | None = None
 
-    _check_start = field_validator("start")(_start_in_range)
+    _check_start = field_validator("start", "start_local")(_start_in_range)
+
+    @model_validator(mode="after")
+    def _one_start(self) -> ScheduleCreate:
+        if (self.start is None) == (self.start_local is None):
+            raise ValueError("give exactly one of start and start_local")
+        return self
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -60,6 +84,7 @@ class ScheduleCreate(RequestModel):
 
 class ScheduleUpdate(RequestModel):
     start: AwareDatetime | None = None
+    start_local: StartLocal = None
     duration_s: DurationS | None = None
     robot: RobotName | None = None
     therapist_id: RecordId | None = None
@@ -67,7 +92,13 @@ class ScheduleUpdate(RequestModel):
     status: Literal["scheduled", "cancelled", "completed"] | None = None
     notes: LongText | None = None
 
-    _check_start = field_validator("start")(_start_in_range)
+    _check_start = field_validator("start", "start_local")(_start_in_range)
+
+    @model_validator(mode="after")
+    def _at_most_one_start(self) -> ScheduleUpdate:
+        if self.start is not None and self.start_local is not None:
+            raise ValueError("give exactly one of start and start_local")
+        return self
 
     model_config = ConfigDict(
         json_schema_extra={"examples": [{"start": "2031-03-05T10:00:00+01:00", "duration_s": 2400}]}
@@ -82,9 +113,30 @@ class ScheduledSessionOut(ResponseModel):
     prescription_version_id: int
     robot: str
     therapist_id: int
-    start: dt.datetime
-    end: dt.datetime
+    start: dt.datetime = Field(description="UTC.")
+    end: dt.datetime = Field(description="UTC.")
+    start_local: dt.datetime = Field(description="Clinic-local time with its UTC offset.")
+    end_local: dt.datetime = Field(description="Clinic-local time with its UTC offset.")
+    timezone: str = Field(description="The clinic's IANA time zone of the local times.")
     duration_s: int
     status: str
     series_id: int | None
     notes: str
+
+
+class WeekBookingOut(ScheduledSessionOut):
+    patient_name: str
+    patient_identifier: str
+    run_count: int
+    last_run_outcome: str | None
+
+
+class WeekOut(ResponseModel):
+    """One clinic-local week of bookings, with what the week view shows, in one answer."""
+
+    timezone: str
+    start_local: dt.datetime
+    end_local: dt.datetime
+    previous_week: dt.date = Field(description="Monday of the previous clinic-local week.")
+    next_week: dt.date = Field(description="Monday of the next clinic-local week.")
+    bookings: list[WeekBookingOut]

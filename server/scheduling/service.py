@@ -4,16 +4,24 @@ Two bookings conflict when their intervals [start, end) overlap and they share t
 cancelled bookings never conflict. The check and the insert happen in one transaction that holds a
 booking lock (PostgreSQL: advisory locks per robot and patient; SQLite: the database write lock, which
 every transaction takes up front), so two concurrent requests cannot both book the same slot.
+
+Times: stored in UTC, expanded and answered in the clinic's zone (`server.scheduling.clinic_time`), so
+that a series keeps its wall-clock time across daylight-saving changes. Every function that reads or
+writes times takes that zone as `zone=`.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
+import secrets
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
+from zoneinfo import ZoneInfo
 
-from sqlalchemy import or_, select, text
+from sqlalchemy import Select, func, or_, select, text
 from sqlalchemy.orm import Session
 
 from server.audit import service as audit
@@ -22,11 +30,11 @@ from server.errors import ConflictError, InvalidFieldError, NotFoundError
 from server.patients.models import Patient
 from server.prescriptions import service as prescriptions
 from server.prescriptions.models import PrescriptionVersion
-from server.scheduling.models import ScheduledSession, ScheduleSeries
-from server.scheduling.schemas import Recurrence, ScheduleCreate, ScheduledSessionOut, ScheduleUpdate
+from server.scheduling import clinic_time
+from server.scheduling.models import CalendarToken, ScheduledSession, ScheduleSeries
+from server.scheduling.schemas import ScheduleCreate, ScheduledSessionOut, ScheduleUpdate, WeekOut
+from server.sessions.models import SessionRun
 from server.users.models import User
-
-STEP_DAYS = {"daily": 1, "weekly": 7}
 
 
 @dataclass(frozen=True)
@@ -37,8 +45,8 @@ class Slot:
     end: dt.datetime
 
 
-def to_out(booking: ScheduledSession, prescription_id: int, version: int) -> ScheduledSessionOut:
-    return ScheduledSessionOut(
+def _out_fields(booking: ScheduledSession, prescription_id: int, version: int, zone: ZoneInfo) -> dict[str, object]:
+    return dict(
         id=booking.id,
         patient_id=booking.patient_id,
         prescription_id=prescription_id,
@@ -48,6 +56,9 @@ def to_out(booking: ScheduledSession, prescription_id: int, version: int) -> Sch
         therapist_id=booking.therapist_id,
         start=booking.start_utc,
         end=booking.end_utc,
+        start_local=booking.start_utc.astimezone(zone),
+        end_local=booking.end_utc.astimezone(zone),
+        timezone=zone.key,
         duration_s=booking.duration_s,
         status=booking.status,
         series_id=booking.series_id,
@@ -55,10 +66,14 @@ def to_out(booking: ScheduledSession, prescription_id: int, version: int) -> Sch
     )
 
 
-def booking_out(*, session: Session, booking: ScheduledSession) -> ScheduledSessionOut:
+def to_out(booking: ScheduledSession, prescription_id: int, version: int, zone: ZoneInfo) -> ScheduledSessionOut:
+    return ScheduledSessionOut.model_validate(_out_fields(booking, prescription_id, version, zone))
+
+
+def booking_out(*, session: Session, booking: ScheduledSession, zone: ZoneInfo) -> ScheduledSessionOut:
     version = session.get(PrescriptionVersion, booking.prescription_version_id)
     assert version is not None  # a foreign key guarantees it
-    return to_out(booking, version.prescription_id, version.version)
+    return to_out(booking, version.prescription_id, version.version, zone)
 
 
 def get_booking(*, session: Session, session_id: int) -> ScheduledSession:
@@ -96,7 +111,7 @@ def _lock_bookings(session: Session, slots: Iterable[Slot]) -> None:
         session.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": zlib.crc32(key.encode())})
 
 
-def _first_conflict(session: Session, slot: Slot, ignore_ids: set[int]) -> ConflictError | None:
+def _first_conflict(session: Session, slot: Slot, ignore_ids: set[int], zone: ZoneInfo) -> ConflictError | None:
     query = (
         select(ScheduledSession)
         .where(
@@ -114,33 +129,41 @@ def _first_conflict(session: Session, slot: Slot, ignore_ids: set[int]) -> Confl
     if other is None:
         return None
     what, field = ("robot", "robot") if other.robot == slot.robot else ("patient", "patient_id")
+
+    def span(start: dt.datetime, end: dt.datetime) -> str:  # in the clinic's wall time, as the week shows it
+        return f"{start.astimezone(zone):%Y-%m-%d %H:%M} to {end.astimezone(zone):%H:%M}"
+
     return ConflictError(
-        f"{what} already booked from {other.start_utc:%Y-%m-%d %H:%M} to {other.end_utc:%H:%M} UTC"
-        f" (session {other.id}); requested {slot.start:%Y-%m-%d %H:%M} to {slot.end:%H:%M} UTC",
+        f"{what} already booked from {span(other.start_utc, other.end_utc)} (session {other.id});"
+        f" requested {span(slot.start, slot.end)} ({zone.key} time)",
         field=field,
     )
 
 
-def _check_free(session: Session, slots: list[Slot], ignore_ids: set[int]) -> None:
+def _check_free(session: Session, slots: list[Slot], ignore_ids: set[int], zone: ZoneInfo) -> None:
     _lock_bookings(session, slots)
     for index, slot in enumerate(slots):
-        conflict = _first_conflict(session, slot, ignore_ids)
+        conflict = _first_conflict(session, slot, ignore_ids, zone)
         if conflict is not None:
             if len(slots) > 1:
                 conflict.args = (f"occurrence {index + 1} of {len(slots)}: {conflict.args[0]}",)
             raise conflict
 
 
-def _occurrence_starts(start: dt.datetime, recurrence: Recurrence | None) -> list[dt.datetime]:
-    if recurrence is None:
-        return [start]
-    step = dt.timedelta(days=STEP_DAYS[recurrence.frequency] * recurrence.interval)
-    return [start + k * step for k in range(recurrence.count)]
+def _requested_start(
+    start: dt.datetime | None, start_local: dt.datetime | None, zone: ZoneInfo
+) -> tuple[dt.datetime, dt.datetime]:
+    """(UTC, clinic-local wall time) of a requested start; refused if that wall time is in a gap or overlap."""
+    if start_local is not None:
+        return clinic_time.to_utc(start_local, zone, field="start_local"), start_local
+    assert start is not None
+    return start.astimezone(dt.UTC), clinic_time.wall_time(start, zone, field="start")
 
 
 @writes
-def create_booking(*, session: Session, data: ScheduleCreate, actor_id: int) -> list[ScheduledSession]:
-    """One booking, or one per occurrence of a recurring series: all of them or none."""
+def create_booking(*, session: Session, data: ScheduleCreate, actor_id: int, zone: ZoneInfo) -> list[ScheduledSession]:
+    """One booking, or one per occurrence of a recurring series (expanded in the clinic's local time, so
+    each keeps the first one's wall-clock time): all of them or none."""
     if session.get(Patient, data.patient_id) is None:
         raise NotFoundError("patient", data.patient_id)
     version = _version_for(
@@ -149,15 +172,25 @@ def create_booking(*, session: Session, data: ScheduleCreate, actor_id: int) -> 
     therapist_id = data.therapist_id or actor_id
     _therapist(session, therapist_id)
     duration = dt.timedelta(seconds=data.duration_s)
-    start_utc = data.start.astimezone(dt.UTC)
-    slots = [Slot(data.robot, data.patient_id, s, s + duration) for s in _occurrence_starts(start_utc, data.recurrence)]
-    _check_free(session, slots, ignore_ids=set())
+    start_utc, first_local = _requested_start(data.start, data.start_local, zone)
+    recurrence = data.recurrence
+    starts = (
+        [start_utc]
+        if recurrence is None
+        else clinic_time.local_occurrences(
+            first_local, recurrence.frequency, recurrence.interval, recurrence.count, zone, field="recurrence"
+        )
+    )
+    slots = [Slot(data.robot, data.patient_id, s, s + duration) for s in starts]
+    _check_free(session, slots, ignore_ids=set(), zone=zone)
     series = None
-    if data.recurrence is not None:
+    if recurrence is not None:
         series = ScheduleSeries(
-            frequency=data.recurrence.frequency,
-            interval=data.recurrence.interval,
-            count=data.recurrence.count,
+            frequency=recurrence.frequency,
+            interval=recurrence.interval,
+            count=recurrence.count,
+            timezone=zone.key,
+            first_start_local=first_local,
             created_by_id=actor_id,
         )
         session.add(series)
@@ -191,7 +224,9 @@ def create_booking(*, session: Session, data: ScheduleCreate, actor_id: int) -> 
 
 
 @writes
-def update_booking(*, session: Session, session_id: int, data: ScheduleUpdate, actor_id: int) -> ScheduledSession:
+def update_booking(
+    *, session: Session, session_id: int, data: ScheduleUpdate, actor_id: int, zone: ZoneInfo
+) -> ScheduledSession:
     booking = get_booking(session=session, session_id=session_id)
     changes = data.model_dump(exclude_unset=True, exclude_none=True)
     if "therapist_id" in changes:
@@ -203,8 +238,8 @@ def update_booking(*, session: Session, session_id: int, data: ScheduleUpdate, a
         booking.prescription_version_id = prescriptions.get_version(
             session=session, prescription_id=current.prescription_id, version=changes["prescription_version"]
         ).id
-    if "start" in changes:
-        booking.start_utc = changes["start"].astimezone(dt.UTC)
+    if "start" in changes or "start_local" in changes:
+        booking.start_utc, _ = _requested_start(changes.get("start"), changes.get("start_local"), zone)
     booking.duration_s = changes.get("duration_s", booking.duration_s)
     booking.end_utc = booking.start_utc + dt.timedelta(seconds=booking.duration_s)
     booking.robot = changes.get("robot", booking.robot)
@@ -212,7 +247,7 @@ def update_booking(*, session: Session, session_id: int, data: ScheduleUpdate, a
     booking.notes = changes.get("notes", booking.notes)
     if booking.status != "cancelled":
         _check_free(
-            session, [Slot(booking.robot, booking.patient_id, booking.start_utc, booking.end_utc)], {booking.id}
+            session, [Slot(booking.robot, booking.patient_id, booking.start_utc, booking.end_utc)], {booking.id}, zone
         )
     audit.record(
         session=session,
@@ -288,9 +323,10 @@ def list_bookings(
     ]
 
 
-def therapist_calendar(*, session: Session, therapist_id: int, product_id: str) -> bytes:
-    """An iCalendar (RFC 5545) feed of the therapist's bookings. Patients appear by record number only,
-    because calendar feeds are copied into calendar apps outside the clinic's control."""
+def therapist_calendar(*, session: Session, therapist_id: int, product_id: str, zone: ZoneInfo) -> bytes:
+    """An iCalendar (RFC 5545) feed of the therapist's bookings, in the clinic's zone (TZID, with its
+    VTIMEZONE), so that calendar apps keep them at their wall-clock time. Patients appear by record
+    number only, because calendar feeds are copied into calendar apps outside the clinic's control."""
     from icalendar import Calendar, Event
 
     therapist = session.get(User, therapist_id)
@@ -306,15 +342,130 @@ def therapist_calendar(*, session: Session, therapist_id: int, product_id: str) 
     calendar.add("prodid", product_id)
     calendar.add("version", "2.0")
     calendar.add("x-wr-calname", f"Balance training: {therapist.username}")
+    calendar.add("x-wr-timezone", zone.key)
     stamp = dt.datetime.now(dt.UTC)
     for booking, identifier in rows:
         event = Event()
         event.add("uid", f"scheduled-session-{booking.id}@ssp-rehab")
         event.add("dtstamp", stamp)
-        event.add("dtstart", booking.start_utc)
-        event.add("dtend", booking.end_utc)
+        event.add("dtstart", booking.start_utc.astimezone(zone))
+        event.add("dtend", booking.end_utc.astimezone(zone))
         event.add("summary", f"Balance training {identifier} on {booking.robot}")
         event.add("location", booking.robot)
         event.add("status", "CANCELLED" if booking.status == "cancelled" else "CONFIRMED")
         calendar.add_component(event)
-    return calendar.to_ical()
+    calendar.add_missing_timezones()
+    return bytes(calendar.to_ical())
+
+
+# --- calendar subscriptions: a secret link per therapist, for calendar apps that cannot log in ----------
+
+
+def _token_digest(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+@writes
+def issue_calendar_token(*, session: Session, therapist_id: int, actor_id: int) -> str:
+    """A new subscription token for the therapist's feed; it replaces (revokes) any earlier one. Only its
+    SHA-256 is stored, so the database never holds a usable link."""
+    _therapist(session, therapist_id)
+    token = secrets.token_urlsafe(32)
+    existing = session.get(CalendarToken, therapist_id)
+    if existing is None:
+        session.add(CalendarToken(therapist_id=therapist_id, token_sha256=_token_digest(token)))
+    else:
+        existing.token_sha256 = _token_digest(token)
+        existing.created_at = dt.datetime.now(dt.UTC)
+    audit.record(
+        session=session, user_id=actor_id, action="issue", resource_type="calendar_token", resource_id=therapist_id
+    )
+    return token
+
+
+@writes
+def revoke_calendar_token(*, session: Session, therapist_id: int, actor_id: int) -> None:
+    existing = session.get(CalendarToken, therapist_id)
+    if existing is None:
+        raise NotFoundError("calendar subscription of user", therapist_id)
+    session.delete(existing)
+    audit.record(
+        session=session, user_id=actor_id, action="revoke", resource_type="calendar_token", resource_id=therapist_id
+    )
+
+
+def therapist_for_calendar_token(*, session: Session, token: str) -> int | None:
+    """The therapist whose live subscription token this is, or None (unknown or revoked)."""
+    therapist_id = session.scalar(
+        select(CalendarToken.therapist_id).where(CalendarToken.token_sha256 == _token_digest(token))
+    )
+    return int(therapist_id) if therapist_id is not None else None
+
+
+def calendar_token_issued_at(*, session: Session, therapist_id: int) -> dt.datetime | None:
+    token = session.get(CalendarToken, therapist_id)
+    return token.created_at if token is not None else None
+
+
+# --- the week view: one clinic-local week, with what the page shows, in one query ------------------------
+
+
+def week_query(start: dt.datetime, end: dt.datetime, robot: str | None = None) -> Select[Any]:
+    """Bookings starting in [start, end), with prescription numbers, patient name and record number, and
+    the run count and last run outcome: one query for the whole week view."""
+    runs = (
+        select(
+            SessionRun.scheduled_session_id.label("booking_id"),
+            func.count(SessionRun.id).label("run_count"),
+            func.max(SessionRun.id).label("last_run_id"),
+        )
+        .group_by(SessionRun.scheduled_session_id)
+        .subquery()
+    )
+    last_run = SessionRun.__table__.alias("last_run")
+    query = (
+        select(
+            ScheduledSession,
+            PrescriptionVersion.prescription_id,
+            PrescriptionVersion.version,
+            Patient.name,
+            Patient.identifier,
+            func.coalesce(runs.c.run_count, 0),
+            func.coalesce(last_run.c.outcome, last_run.c.state),
+        )
+        .join(PrescriptionVersion, PrescriptionVersion.id == ScheduledSession.prescription_version_id)
+        .join(Patient, Patient.id == ScheduledSession.patient_id)
+        .outerjoin(runs, runs.c.booking_id == ScheduledSession.id)
+        .outerjoin(last_run, last_run.c.id == runs.c.last_run_id)
+        .where(ScheduledSession.start_utc >= start, ScheduledSession.start_utc < end)
+        .order_by(ScheduledSession.start_utc, ScheduledSession.id)
+    )
+    return query if robot is None else query.where(ScheduledSession.robot == robot)
+
+
+def week(*, session: Session, day: dt.date, zone: ZoneInfo, robot: str | None = None) -> WeekOut:
+    """Bookings starting in the clinic-local week holding `day`, with patient names and run summaries."""
+    start_local, end_local = clinic_time.week_bounds(day, zone)
+    query = week_query(start_local, end_local, robot)
+    bookings = [
+        {
+            **_out_fields(booking, prescription_id, version, zone),
+            "patient_name": name,
+            "patient_identifier": identifier,
+            "run_count": run_count,
+            "last_run_outcome": last_outcome,
+        }
+        for booking, prescription_id, version, name, identifier, run_count, last_outcome in session.execute(query)
+    ]
+    monday = start_local.date()
+    # One validation of the whole week (in pydantic-core), not one Python call per booking.
+    return WeekOut.model_validate(
+        {
+            "timezone": zone.key,
+            "start_local": start_local,
+            "end_local": end_local,
+            "previous_week": monday - dt.timedelta(days=7),
+            "next_week": monday + dt.timedelta(days=7),
+            "bookings": bookings,
+        }
+    )

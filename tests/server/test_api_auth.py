@@ -15,7 +15,8 @@ from server.db import Database
 from server.settings import Settings
 from tests.server.conftest import ADMIN_PASSWORD, PATIENT, THERAPIST_PASSWORD, Seed, create_patient
 
-PUBLIC_ROUTES = {("GET", "/api/v1/health"), ("POST", "/api/v1/auth/login")}
+# The calendar subscription link: its secret path is the credential (calendar apps cannot log in).
+PUBLIC_ROUTES = {("GET", "/api/v1/health"), ("POST", "/api/v1/auth/login"), ("GET", "/api/v1/calendar/{token}.ics")}
 # Framework pages that carry no data: the OpenAPI document and its viewers.
 DOCUMENTATION_PATHS = {"/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"}
 

@@ -221,6 +221,44 @@ def test_the_therapist_calendar_feed_is_valid_icalendar_without_patient_names(cl
     ]
     assert all("MRN-A" in str(e["summary"]) for e in events)
     assert PATIENT["name"] not in response.text
-    admin_feed = client.get(f"/api/v1/therapists/{seed.admin_id}/calendar.ics", headers=seed.headers())
+    admin_feed = client.get(f"/api/v1/therapists/{seed.admin_id}/calendar.ics", headers=seed.headers("admin"))
     assert Calendar.from_ical(admin_feed.content).walk("VEVENT") == []
-    assert client.get("/api/v1/therapists/999999/calendar.ics", headers=seed.headers()).status_code == 404
+    assert client.get("/api/v1/therapists/999999/calendar.ics", headers=seed.headers("admin")).status_code == 404
+
+
+def test_a_therapist_cannot_read_another_therapists_feed(client: TestClient, seed: Seed) -> None:
+    patient_id, prescription_id = patient_with_prescription(client, seed, "MRN-A")
+    book(client, seed.headers("admin"), patient_id=patient_id, prescription_id=prescription_id, start=MONDAY_9)
+    other = client.get(f"/api/v1/therapists/{seed.admin_id}/calendar.ics", headers=seed.headers())
+    assert other.status_code == 403, other.text
+    assert "therapist_id" in other.json()["detail"]
+    own = client.get(f"/api/v1/therapists/{seed.admin_id}/calendar.ics", headers=seed.headers("admin"))
+    assert own.status_code == 200
+
+
+def test_a_subscription_link_serves_only_that_therapists_feed_without_a_login(client: TestClient, seed: Seed) -> None:
+    patient_id, prescription_id = patient_with_prescription(client, seed, "MRN-A")
+    book(client, seed.headers(), patient_id=patient_id, prescription_id=prescription_id, start=MONDAY_9)
+    book(client, seed.headers("admin"), patient_id=patient_id, prescription_id=prescription_id,
+         start="2031-05-06T09:00:00+00:00")  # fmt: skip
+    # A calendar app has no login: the feed's login URL refuses it.
+    assert client.get(f"/api/v1/therapists/{seed.therapist_id}/calendar.ics").status_code == 401
+    issued = client.post(f"/api/v1/therapists/{seed.therapist_id}/calendar-subscription", headers=seed.headers())
+    assert issued.status_code == 201, issued.text
+    url = issued.json()["url"]
+    assert url.startswith("http") and url.endswith(".ics")
+    feed = client.get(url)  # no Authorization header, no cookie
+    assert feed.status_code == 200 and feed.headers["content-type"].startswith("text/calendar")
+    events = Calendar.from_ical(feed.content).walk("VEVENT")
+    assert [e.decoded("dtstart").isoformat() for e in events] == ["2031-05-05T09:00:00+00:00"]  # not the admin's
+    # Someone else's subscription cannot be issued or revoked by a therapist.
+    other = client.post(f"/api/v1/therapists/{seed.admin_id}/calendar-subscription", headers=seed.headers())
+    assert other.status_code == 403
+    # Re-issuing revokes the old link; revoking ends the new one.
+    reissued = client.post(f"/api/v1/therapists/{seed.therapist_id}/calendar-subscription", headers=seed.headers())
+    assert client.get(url).status_code == 404 and client.get(reissued.json()["url"]).status_code == 200
+    status = client.get(f"/api/v1/therapists/{seed.therapist_id}/calendar-subscription", headers=seed.headers())
+    assert status.json()["issued_at"] is not None and status.json()["url"] is None  # the secret is shown once
+    revoked = client.delete(f"/api/v1/therapists/{seed.therapist_id}/calendar-subscription", headers=seed.headers())
+    assert revoked.status_code == 204 and client.get(reissued.json()["url"]).status_code == 404
+    assert client.get("/api/v1/calendar/" + "x" * 43 + ".ics").status_code == 404

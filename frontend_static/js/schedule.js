@@ -1,0 +1,163 @@
+// The schedule: one clinic-local week, booking and moving sessions, in the clinic's wall-clock time.
+//
+// Times come from the API as clinic-local ISO strings with their offset (`start_local`) and are shown as
+// written there, whatever the browser's zone; bookings are sent as a clinic-local wall time without offset
+// (`start_local`), which the service reads in its zone and refuses if it falls in a DST gap or overlap.
+// Weeks are calendar dates (YYYY-MM-DD), computed in UTC date arithmetic so that no browser zone or DST
+// change can move them; the service answers the previous and next week with each week.
+import { get, patch, post, query } from "./api.js";
+import { banner, clear, field, h, showError, showFieldErrors } from "./ui.js";
+
+const go = (hash) => { location.hash = hash; };
+
+// --- calendar dates and clinic-local wall times, as strings ----------------------------------------
+const ISO_DATE = /^\d{4}-\d{2}-\d{2}$/;
+function dateParts(isoDate) { const [y, m, d] = isoDate.split("-").map(Number); return Date.UTC(y, m - 1, d); }
+function addDays(isoDate, days) { return new Date(dateParts(isoDate) + days * 86400000).toISOString().slice(0, 10); }
+function longDate(isoDate, options) {
+  return new Date(dateParts(isoDate)).toLocaleDateString(undefined, { timeZone: "UTC", ...options });
+}
+const wallDate = (localIso) => localIso.slice(0, 10); // "2031-03-30T10:00:00+02:00" → "2031-03-30"
+const wallTime = (localIso) => localIso.slice(11, 16); // → "10:00"
+const wallInput = (localIso) => localIso.slice(0, 16); // → the datetime-local value "2031-03-30T10:00"
+
+// Today and the next quarter hour on the clinic's clock (Intl with the clinic's IANA zone).
+function clinicNow(timeZone, offsetMs = 0) {
+  const parts = Object.fromEntries(new Intl.DateTimeFormat("en-CA", {
+    timeZone, year: "numeric", month: "2-digit", day: "2-digit", hour: "2-digit", minute: "2-digit", hourCycle: "h23",
+  }).formatToParts(new Date(Date.now() + offsetMs)).map((p) => [p.type, p.value]));
+  return { date: `${parts.year}-${parts.month}-${parts.day}`, hour: Number(parts.hour), minute: Number(parts.minute) };
+}
+function nextQuarterHourInput(timeZone) {
+  const soon = clinicNow(timeZone, 15 * 60000);
+  const minutes = Math.ceil((soon.hour * 60 + soon.minute) / 15) * 15;
+  const date = minutes >= 1440 ? addDays(soon.date, 1) : soon.date;
+  const pad = (n) => String(n).padStart(2, "0");
+  return `${date}T${pad(Math.floor((minutes % 1440) / 60))}:${pad(minutes % 60)}`;
+}
+
+function weekHash(monday, patientId, extra = {}) {
+  const params = new URLSearchParams({ week: monday, ...(patientId ? { patient: String(patientId) } : {}), ...extra });
+  return `#/schedule?${params}`;
+}
+
+// --- the week view ---------------------------------------------------------------------------------
+export async function schedulePage(main, params) {
+  const asked = params.get("week");
+  const [week, patients] = await Promise.all([
+    get(`/schedule/week${query({ day: asked && ISO_DATE.test(asked) ? asked : undefined })}`),
+    get("/patients?limit=500"),
+  ]);
+  const monday = wallDate(week.start_local);
+  const zone = week.timezone;
+  const selectedPatient = params.get("patient");
+  main.append(h("h1", {}, `Schedule: week of ${longDate(monday, { day: "numeric", month: "long", year: "numeric" })}`),
+    h("div.row", {}, h("button.secondary", { type: "button", onclick: () => go(weekHash(week.previous_week, selectedPatient)) }, "← Previous week"),
+      h("button.secondary", { type: "button", onclick: () => go(weekHash(clinicNow(zone).date, selectedPatient)) }, "This week"),
+      h("button.secondary", { type: "button", onclick: () => go(weekHash(week.next_week, selectedPatient)) }, "Next week →")),
+    h("p.muted", {}, `Times are ${zone} time (the clinic's clock).`));
+  const bookings = week.bookings;
+  const conflicts = overlapping(bookings.filter((b) => b.status !== "cancelled"));
+  const today = clinicNow(zone).date;
+  const days = h("div.week");
+  for (let i = 0; i < 7; i += 1) {
+    const day = addDays(monday, i);
+    days.append(h(`section.day${day === today ? ".today" : ""}`, { "aria-label": longDate(day, { weekday: "long", day: "numeric", month: "long", year: "numeric" }) },
+      h("h3", {}, longDate(day, { weekday: "long", day: "numeric", month: "short" })),
+      bookings.filter((b) => wallDate(b.start_local) === day).map((b) => h(
+        `button.booking.${b.status}${conflicts.has(b.id) ? ".conflict" : ""}`,
+        { type: "button", onclick: () => editBooking(b) },
+        h("strong", {}, `${wallTime(b.start_local)}–${wallTime(b.end_local)}`), h("br"), b.patient_name,
+        h("br"), `${b.robot} · ${b.status}${conflicts.has(b.id) ? " · CONFLICT" : ""}`))));
+  }
+  main.append(days, bookingForm(patients, selectedPatient, zone));
+}
+
+function overlapping(bookings) {
+  const ids = new Set();
+  for (const a of bookings) for (const b of bookings) {
+    if (a.id < b.id && (a.robot === b.robot || a.patient_id === b.patient_id) && new Date(a.start) < new Date(b.end) && new Date(b.start) < new Date(a.end)) {
+      ids.add(a.id); ids.add(b.id);
+    }
+  }
+  return ids;
+}
+
+// Refusals next to their field (a 409 conflict goes to the start time).
+function placeErrors(form, error) {
+  const errors = error.status === 422 ? error.fieldErrors : error.status === 409 ? { start: error.message } : {};
+  if (errors.start_local && !errors.start) errors.start = errors.start_local;
+  if (errors.recurrence && !errors.start) errors.start = errors.recurrence;
+  if (errors.duration_s) errors.duration_s = errors.duration_s.replace(/(\d+)/g, (m) => `${m} s`);
+  const unplaced = showFieldErrors(form, errors);
+  if (!Object.keys(errors).length || unplaced.length) showError(error, "form");
+}
+
+function bookingForm(patients, selectedPatient, zone) {
+  const patient = h("select", { "data-field": "patient_id" }, patients.map((p) => h("option", { value: p.id, selected: String(p.id) === selectedPatient }, `${p.name} (${p.identifier})`)));
+  const prescription = h("select", { "data-field": "prescription_id" });
+  const start = h("input", { type: "datetime-local", "data-field": "start", value: nextQuarterHourInput(zone) });
+  const duration = h("input", { type: "number", min: "1", max: "240", value: "30", "data-field": "duration_s" });
+  const robot = h("input", { value: "twin-1", "data-field": "robot" });
+  const repeat = h("select", { "data-field": "recurrence" }, [["", "once"], ["daily", "daily"], ["weekly", "weekly"]].map(([v, t]) => h("option", { value: v }, t)));
+  const count = h("input", { type: "number", min: "2", max: "104", value: "6", "data-field": "recurrence.count" });
+  const loadPrescriptions = async () => {
+    const list = patient.value ? await get(`/prescriptions${query({ patient_id: patient.value })}`) : [];
+    clear(prescription).append(...list.map((p) => h("option", { value: p.id }, `${p.name} (v${p.latest_version})`)));
+  };
+  patient.addEventListener("change", () => loadPrescriptions().catch(showError));
+  loadPrescriptions().catch(showError);
+  const form = h("form.panel", {
+    novalidate: true,
+    onsubmit: async (event) => {
+      event.preventDefault();
+      const body = {
+        patient_id: Number(patient.value), prescription_id: Number(prescription.value), robot: robot.value,
+        start_local: start.value, duration_s: Math.round(Number(duration.value) * 60),
+      };
+      if (repeat.value) body.recurrence = { frequency: repeat.value, interval: 1, count: Number(count.value) };
+      try {
+        const created = await post("/sessions", body);
+        banner("info", `${created.length} session(s) booked.`);
+        go(weekHash(wallDate(created[0].start_local), patient.value, { booked: String(created[0].id) }));
+      } catch (error) {
+        placeErrors(form, error);
+      }
+    },
+  },
+  h("h2", {}, "Book a session"),
+  h("div.form-grid", {}, field("Patient", patient), field("Prescription", prescription), field("Start", start, { unit: zone }),
+    field("Duration", duration, { unit: "min" }), field("Robot", robot), field("Repeat", repeat), field("Occurrences", count, { unit: "sessions" })),
+  h("button.primary", { type: "submit" }, "Book session"));
+  return form;
+}
+
+async function editBooking(booking) {
+  const dialog = h("dialog", { "aria-labelledby": "booking-title" });
+  const start = h("input", { type: "datetime-local", value: wallInput(booking.start_local), "data-field": "start" });
+  const duration = h("input", { type: "number", min: "1", max: "240", value: String(booking.duration_s / 60), "data-field": "duration_s" });
+  const when = `${longDate(wallDate(booking.start_local), { weekday: "short", day: "numeric", month: "short", year: "numeric" })} ${wallTime(booking.start_local)}`;
+  const form = h("form", { method: "dialog", novalidate: true },
+    h("h2#booking-title", {}, `Session ${booking.id}: ${booking.patient_name}`),
+    h("p", {}, `${when} (${booking.timezone}) on ${booking.robot}, ${booking.status}.`),
+    field("Move to", start, { unit: booking.timezone }), field("Duration", duration, { unit: "min" }),
+    h("div.dialog-buttons", {},
+      h("a.button", { href: `#/session/${booking.id}`, onclick: () => dialog.close() }, "Open session console"),
+      booking.status === "scheduled" ? h("button.danger", { type: "button", onclick: () => save({ status: "cancelled" }) }, "Cancel session") : null,
+      h("button.secondary", { type: "button", onclick: () => dialog.close() }, "Close"),
+      h("button.primary", { type: "button", onclick: () => save({ start_local: start.value, duration_s: Math.round(Number(duration.value) * 60) }) }, "Move")));
+  async function save(change) {
+    try {
+      await patch(`/sessions/${booking.id}`, change);
+      dialog.close();
+      banner("info", change.status === "cancelled" ? "Session cancelled." : "Session moved.");
+      window.dispatchEvent(new HashChangeEvent("hashchange"));
+    } catch (error) {
+      placeErrors(form, error);
+    }
+  }
+  dialog.append(form);
+  document.body.append(dialog);
+  dialog.addEventListener("close", () => dialog.remove());
+  dialog.showModal();
+}

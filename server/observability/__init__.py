@@ -1,0 +1,1 @@
+"""Observability of the console service: Prometheus metrics at /metrics and structured JSON logs."""

@@ -1,0 +1,192 @@
+"""The schedule's clinic-local week in a real browser (issue 16 defect 7, §8): with the browser and the
+clinic in Europe/Berlin, "Next week" and "Previous week" move by exactly one week (also across the DST
+change), and a booking returns to its own week with the same patient selected. With the browser in
+another zone (America/New_York), the page still shows and enters the clinic's wall-clock times. The week
+is fetched in one request."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.e2e.conftest import CHROMIUM_ARGS, free_port
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+expect = playwright_api.expect
+
+ROOT = Path(__file__).resolve().parents[2]
+USER = ("week-admin", "week-password-1")
+CLINIC_ZONE = "Europe/Berlin"
+
+
+@pytest.fixture(scope="module")
+def clinic_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Path) -> Iterator[dict[str, object]]:
+    """`ssp-rehab serve --no-robot` for a clinic in Europe/Berlin, with two patients and prescriptions."""
+    data_dir = tmp_path_factory.mktemp("week-data")
+    env = {**os.environ, "SSP_REHAB_TIMEZONE": CLINIC_ZONE, "SSP_REHAB_VIZ_ENABLED": "false"}
+    cli = [sys.executable, "-m", "server.cli.main"]
+    subprocess.run(
+        [*cli, "create-user", "--username", USER[0], "--password", USER[1], "--role", "admin",
+         "--data-dir", str(data_dir)],
+        check=True, cwd=ROOT, env=env, capture_output=True,
+    )  # fmt: skip
+    port = free_port()
+    log = (data_dir / "serve.log").open("w")
+    process = subprocess.Popen(
+        [*cli, "serve", "--no-robot", "--port", str(port), "--data-dir", str(data_dir)],
+        cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT,
+    )  # fmt: skip
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120.0
+        while True:
+            assert process.poll() is None, (data_dir / "serve.log").read_text()[-2000:]
+            try:
+                if httpx.get(f"{base}/api/v1/health", timeout=1.0).status_code == 200:
+                    break
+            except httpx.HTTPError:
+                pass
+            assert time.monotonic() < deadline, "the service did not come up"
+            time.sleep(0.3)
+        token = httpx.post(f"{base}/api/v1/auth/login", json={"username": USER[0], "password": USER[1]}).json()
+        headers = {"Authorization": f"Bearer {token['access_token']}"}
+        patients = []
+        for identifier, name in (("MRN-W1", "Anna Erste"), ("MRN-W2", "Bert Zweiter")):
+            patient = httpx.post(
+                f"{base}/api/v1/patients",
+                json={"identifier": identifier, "name": name, "date_of_birth": "1950-02-03", "sex": "female",
+                      "height_m": 1.65, "body_mass_kg": 60.0, "diagnosis": "stroke", "affected_side": "left"},
+                headers=headers,
+            ).json()  # fmt: skip
+            segment = {
+                "cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.5},
+                "duration_s": 30,
+            }
+            httpx.post(
+                f"{base}/api/v1/prescriptions",
+                json={"patient_id": patient["id"], "name": f"Sway {identifier}", "segments": [segment]},
+                headers=headers,
+            ).raise_for_status()
+            patients.append(patient)
+        yield {"base_url": base, "headers": headers, "patients": patients}
+    finally:
+        process.terminate()
+        process.wait(30)
+        log.close()
+
+
+def _logged_in_page(browser: object, base: str, timezone_id: str) -> object:
+    context = browser.new_context(  # type: ignore[attr-defined]
+        viewport={"width": 1400, "height": 1000}, timezone_id=timezone_id, locale="en-GB"
+    )
+    page = context.new_page()
+    page.set_default_timeout(20_000)
+    page.goto(f"{base}/#/login")
+    page.get_by_label("Username").fill(USER[0])
+    page.get_by_label("Password").fill(USER[1])
+    page.get_by_role("button", name="Log in").click()
+    expect(page.get_by_role("heading", name="Patients")).to_be_visible()
+    return page
+
+
+def _heading(page: object) -> object:
+    return page.get_by_role("heading", name="Schedule: week of")  # type: ignore[attr-defined]
+
+
+def test_week_navigation_and_booking_in_clinic_local_time(
+    clinic_service: dict[str, object], chromium_path: Path
+) -> None:
+    base = str(clinic_service["base_url"])
+    second_patient = clinic_service["patients"][1]  # type: ignore[index]
+    with playwright_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
+        try:
+            page = _logged_in_page(browser, base, CLINIC_ZONE)
+            errors: list[str] = []
+            page.on("pageerror", lambda error: errors.append(str(error)))
+            schedule_requests: list[str] = []
+            page.on(
+                "request",
+                lambda request: (
+                    schedule_requests.append(request.url)
+                    if "/api/v1/sessions" in request.url or "/api/v1/schedule" in request.url
+                    else None
+                ),
+            )
+            # The week before the spring change (clocks go forward on Sunday 30 March 2031).
+            page.goto(f"{base}/#/schedule?week=2031-03-26")
+            expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
+            page.get_by_role("button", name="Next week").click()
+            expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
+            page.get_by_role("button", name="Next week").click()
+            expect(_heading(page)).to_have_text("Schedule: week of 7 April 2031")
+            page.get_by_role("button", name="Previous week").click()
+            expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
+            page.get_by_role("button", name="Previous week").click()
+            expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
+            page.get_by_role("button", name="Previous week").click()
+            expect(_heading(page)).to_have_text("Schedule: week of 17 March 2031")
+
+            # Book the second patient on Wednesday 2 April, 10:00 clinic time, from the week of 17 March.
+            form = page.locator("form:has(h2:text('Book a session'))")
+            form.get_by_label("Patient").select_option(str(second_patient["id"]))
+            expect(form.get_by_label("Prescription").locator("option")).to_have_count(1)
+            form.get_by_label("Start").fill("2031-04-02T10:00")
+            form.get_by_label("Duration").fill("30")
+            schedule_requests.clear()
+            form.get_by_role("button", name="Book session").click()
+            expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
+            day = page.get_by_role("region", name="Wednesday, 2 April 2031")
+            expect(day.get_by_role("button", name="10:00–10:30")).to_be_visible()
+            expect(day).to_contain_text("Bert Zweiter")
+            expect(page.locator("form:has(h2:text('Book a session'))").get_by_label("Patient")).to_have_value(
+                str(second_patient["id"])
+            )
+            week_loads = [url for url in schedule_requests if "/api/v1/schedule/week" in url]
+            assert len(week_loads) == 1 and len(schedule_requests) == 2, schedule_requests  # the POST, one week GET
+
+            # A time in the spring gap is refused next to the field, never shifted.
+            form = page.locator("form:has(h2:text('Book a session'))")
+            form.get_by_label("Start").fill("2031-03-30T02:30")
+            form.get_by_role("button", name="Book session").click()
+            expect(form).to_contain_text("does not exist in Europe/Berlin")
+            assert errors == []
+        finally:
+            browser.close()
+
+
+def test_a_browser_in_another_zone_shows_and_enters_clinic_time(
+    clinic_service: dict[str, object], chromium_path: Path
+) -> None:
+    base = str(clinic_service["base_url"])
+    first_patient = clinic_service["patients"][0]  # type: ignore[index]
+    with playwright_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
+        try:
+            page = _logged_in_page(browser, base, "America/New_York")
+            page.goto(f"{base}/#/schedule?week=2031-04-14&patient={first_patient['id']}")
+            expect(_heading(page)).to_have_text("Schedule: week of 14 April 2031")
+            form = page.locator("form:has(h2:text('Book a session'))")
+            expect(form.get_by_label("Prescription").locator("option")).to_have_count(1)
+            form.get_by_label("Start").fill("2031-04-15T09:15")
+            form.get_by_role("button", name="Book session").click()
+            day = page.get_by_role("region", name="Tuesday, 15 April 2031")
+            expect(day.get_by_role("button", name="09:15–09:45")).to_be_visible()
+            expect(page.get_by_text("Times are Europe/Berlin time")).to_be_visible()
+        finally:
+            browser.close()
+    booked = httpx.get(
+        f"{base}/api/v1/sessions",
+        params={"patient_id": first_patient["id"]},
+        headers=clinic_service["headers"],  # type: ignore[arg-type]
+    ).json()
+    assert [b["start"] for b in booked] == ["2031-04-15T07:15:00Z"]  # 09:15 in Berlin (CEST), not in New York
