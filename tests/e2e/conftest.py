@@ -88,7 +88,13 @@ def console_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Pat
             if time.monotonic() > deadline:
                 raise RuntimeError(f"ssp-rehab serve did not answer within {SERVICE_START_TIMEOUT_S} s")
             time.sleep(0.5)
-        yield {"base_url": base_url, "viz_port": viz_port, "backend": backend, "log": data_dir / "serve.log"}
+        yield {
+            "base_url": base_url,
+            "viz_port": viz_port,
+            "backend": backend,
+            "log": data_dir / "serve.log",
+            "database_url": f"sqlite:///{(data_dir / 'ssp-rehab.sqlite3').resolve()}",
+        }
     finally:
         process.terminate()
         try:
@@ -99,3 +105,11 @@ def console_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Pat
         log.close()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         (ARTIFACTS / "serve.log").write_text((data_dir / "serve.log").read_text())
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Iterator[pytest.TestReport]:
+    """Keeps each phase's report on the test item, so fixtures can save a screenshot when a test failed."""
+    report = yield
+    setattr(item, f"rep_{report.when}", report)
+    return report

@@ -57,7 +57,7 @@ def test_clinician_flow(console_service: dict[str, object], chromium_path: Path)
             height_error = page.locator(
                 ".field:has(#" + page.get_by_label("Height").get_attribute("id") + ") .field-error"
             )
-            expect(height_error).to_contain_text("2.5")
+            expect(height_error).to_contain_text("250 cm")  # the unit on screen, not the API's metres
             shot(page, "patient-validation")
             page.get_by_label("Height").fill("168")
             page.get_by_role("button", name="Create patient").click()
