@@ -63,5 +63,6 @@ export class LiveChart {
       setTimeout(() => { this.pending = false; this.plot.setData(this.data); }, 80);
     }
   }
+  reset() { this.data = this.data.map(() => []); this.plot.setData(this.data); }
   resize() { this.plot.setSize({ width: chartWidth(this.box), height: this.plot.height }); }
 }

@@ -2,7 +2,7 @@
 // live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
 import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
-import { OUTCOME_WORDS, detailWords, eventTitle, sessionTime, words } from "./language.js";
+import { OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
@@ -65,6 +65,10 @@ export async function sessionPage(main, sessionId, cleanup) {
   const vizHost = h("div#viz-host");
   const vizStatus = h("p.muted#viz-status", { role: "status" }, "3D view: connecting…");
   const chartsHost = h("div.charts#live-charts");
+  const chartsTitle = h("h2#charts-title", {}, "Live signals");
+  const cameraButtons = h("div.row.camera-presets", { role: "group", "aria-label": "3D view camera" }, h("span.muted", {}, "View from:"),
+    [["oblique", "Overview"], ["front", "Front"], ["left", "Left side"], ["right", "Right side"], ["top", "Above"]].map(([preset, label]) =>
+      h("button.secondary", { type: "button", onclick: () => post("/viz/camera", { preset }).catch((error) => showError(error, "command")) }, label)));
   const runsHost = h("div#runs");
   const totalS = prescription.content.segments.reduce((s, x) => s + x.duration_s, 0);
 
@@ -79,12 +83,12 @@ export async function sessionPage(main, sessionId, cleanup) {
         h("div", {}, h("div.muted", {}, "Run"), runState)),
       h("div.row.run-controls", { role: "group", "aria-label": "Run control" }, controls.start, controls.pause, controls.resume, controls.stop, controls.reset)),
     h("div.console-grid", {},
-      h("section", { "aria-label": "3D view" }, h("h2", {}, "3D view"), vizHost, vizStatus),
+      h("section", { "aria-label": "3D view" }, h("h2", {}, "3D view"), vizHost, cameraButtons, vizStatus),
       h("section", { "aria-label": "Worker health" }, h("h2", {}, "Robot and worker health"), health)),
-    h("h2", {}, "Live signals"),
+    chartsTitle,
     chartsHost,
     h("h2", {}, "Runs, events, notes and exports"),
-    h("button.secondary", { type: "button", onclick: () => post("/viz/live").catch(showError) }, "3D view: back to live"),
+    h("button.secondary", { type: "button", onclick: () => post("/viz/live").then(() => { replaySeries = null; resetCharts("Live signals"); }).catch(showError) }, "3D view: back to live"),
     runsHost);
 
   // --- live charts -----------------------------------------------------------------------------
@@ -116,7 +120,7 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (!s) { health.append(metric("Telemetry", "waiting…")); return; }
     const engineering = (el) => { el.classList.add("engineering-only"); return el; };
     health.append(
-      metric("Robot", words(s.state).toUpperCase(), ["estop", "fault"].includes(s.state)),
+      metric("Robot", describeRobot(s).label, describeRobot(s).level === "bad"),
       metric("Harness load", fmt(s.harness_load_n, "N", 0)),
       metric("Emergency stop", s.estop_latched ? "LATCHED" : "clear", s.estop_latched),
       metric("Last stop", words(s.stop_reason)),
@@ -130,6 +134,38 @@ export async function sessionPage(main, sessionId, cleanup) {
       engineering(metric("Worker clock", fmt(s.time_s, "s", 1))));
   }
 
+  function plot(t, s, estimator) {
+    const pose = s.stance_pose;
+    const delivered = platformSpecificForce(pose.slice(3), estimator.update(t, pose.slice(0, 3)));
+    const cue = s.cue_specific_force_m_s2;
+    charts.acceleration.push(t, [cue[0], delivered[0], cue[1], delivered[1]]);
+    charts.sliders.push(t, s.slider_position_m.map((v) => v * M_TO_MM));
+    charts.forces.push(t, s.drive_force_n);
+    charts.cop.push(t, [s.plate_cop_m[0][0], s.plate_cop_m[0][1], s.plate_cop_m[1][0], s.plate_cop_m[1][1]].map((v) => v * M_TO_MM));
+    charts.loads.push(t, [s.harness_load_n, s.plate_force_z_n[0], s.plate_force_z_n[1]]);
+  }
+  function resetCharts(title) {
+    Object.values(charts).forEach((chart) => chart.reset());
+    chartsTitle.textContent = title;
+    chartsHost.dataset.source = replaySeries ? `replay-${replaySeries.run_id}` : "live";
+  }
+  // The replayed run's samples up to the replay's position, as the 3D view reaches them.
+  function followReplay(status) {
+    if (!replaySeries) return;
+    if (status.mode !== "replay" || status.replay_run_id !== replaySeries.run_id) {
+      replaySeries = null;
+      resetCharts("Live signals");
+      return;
+    }
+    const { time_s: times } = replaySeries;
+    while (replayShown < times.length && times[replayShown] <= status.replay_position_s + 1e-6) {
+      const i = replayShown;
+      plot(times[i], Object.fromEntries(Object.keys(replaySeries).filter((k) => Array.isArray(replaySeries[k])).map((k) => [k, replaySeries[k][i]])), replayAcceleration);
+      replayShown += 1;
+    }
+    chartsHost.dataset.replaySamples = String(replayShown);
+  }
+
   function onFrame(frame) {
     if (frame.type === "error") { banner("error", `Robot offline: ${frame.detail}`, { key: "robot" }); return; }
     const s = frame.state;
@@ -139,17 +175,10 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (robotStateChanged) { updateControls(); window.dispatchEvent(new CustomEvent("ssp:robot-state", { detail: s })); }
     framesThisSecond += 1;
     chartsHost.dataset.samples = String(Number(chartsHost.dataset.samples || 0) + 1);
-    clear(supervisorState).append(badge(s.state), ` drives ${s.hal_state}`);
+    clear(supervisorState).append(badge(s.state), h("span.engineering-only", {}, ` drives ${s.hal_state}`));
     if (chartOrigin === null) chartOrigin = s.time_s;
-    const t = s.time_s - chartOrigin; // seconds since this page opened, not the worker's uptime
-    const pose = s.stance_pose;
-    const delivered = platformSpecificForce(pose.slice(3), acceleration.update(t, pose.slice(0, 3)));
-    const cue = s.cue_specific_force_m_s2;
-    charts.acceleration.push(t, [cue[0], delivered[0], cue[1], delivered[1]]);
-    charts.sliders.push(t, s.slider_position_m.map((v) => v * M_TO_MM));
-    charts.forces.push(t, s.drive_force_n);
-    charts.cop.push(t, [s.plate_cop_m[0][0], s.plate_cop_m[0][1], s.plate_cop_m[1][0], s.plate_cop_m[1][1]].map((v) => v * M_TO_MM));
-    charts.loads.push(t, [s.harness_load_n, s.plate_force_z_n[0], s.plate_force_z_n[1]]);
+    // Seconds since this page opened, not the worker's uptime; a replay owns the charts while it plays.
+    if (!replaySeries) plot(s.time_s - chartOrigin, s, acceleration);
     for (const event of frame.events || []) {
       if (event.kind === "fall") {
         const into = runStart && Number.isFinite(event.tick_time_s) ? ` ${fmt(event.tick_time_s - runStart.tick_time_s, "s", 1)} into the run` : "";
@@ -161,6 +190,9 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
   let lastRender = 0;
   let chartOrigin = null;
+  let replaySeries = null; // the replayed run's signals (GET /viz/runs/{id}/series), shown instead of live ones
+  let replayShown = 0;
+  let replayAcceleration = null;
   let runStart = null; // the active run's start event: times into the run come from the same worker clock
 
   // --- telemetry WebSocket (reconnects while the page is open) ---------------------------------
@@ -181,6 +213,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   // --- the 3D view -------------------------------------------------------------------------------
   const viz = await get("/viz").catch(() => ({ available: false, detail: "the 3D view status is unavailable" }));
   if (viz.available) {
+    post("/viz/figure", { patient_id: booking.patient_id }).catch(() => null); // the figure takes the patient's height
     vizHost.append(h("iframe.viz-frame#viz-frame", { src: `${location.protocol}//${location.hostname}:${viz.port}/`, title: "Live 3D view of the twin robot and the patient", loading: "eager" }));
   } else {
     vizHost.append(h("p.panel", {}, `3D view unavailable: ${viz.detail}`));
@@ -194,6 +227,7 @@ export async function sessionPage(main, sessionId, cleanup) {
         : `3D view: live at ${st.rate_hz} Hz · ${st.frames_shown} frames shown`;
       vizStatus.dataset.frames = st.frames_shown;
       vizStatus.dataset.mode = st.mode;
+      followReplay(st);
     } catch (_) { /* the banner logic elsewhere reports API trouble */ }
   }, 1000);
 
@@ -316,7 +350,15 @@ export async function sessionPage(main, sessionId, cleanup) {
     }
   }
   async function replay(runId) {
-    try { await post("/viz/replay", { run_id: runId }); banner("info", `Replaying run ${runId} in the 3D view.`); } catch (error) { showError(error); }
+    try {
+      await post("/viz/replay", { run_id: runId });
+      replaySeries = await get(`/viz/runs/${runId}/series?points=4000`);
+      replayShown = 0;
+      replayAcceleration = new AccelerationEstimate();
+      resetCharts(`Signals of run ${runId} (replay, time into the run)`);
+      clearErrors("command");
+      banner("info", `Replaying run ${runId} in the 3D view and the charts.`);
+    } catch (error) { showError(error, "command"); }
   }
 
   // --- run control -------------------------------------------------------------------------------
