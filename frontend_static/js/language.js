@@ -182,9 +182,20 @@ const CONFLICT_PATTERNS = [
   [/not accepted in state (\w+)/i, (m) => `Not possible while the robot is ${words(m[1])}.`],
   [/identifier is already used/i, "This record number is already used by another patient: check it, or open that patient."],
   [/already acknowledged/i, "This stop has already been acknowledged."],
+  [/ended with an? ([\w ]+) that is not acknowledged/i, (m) => `The robot's last run ended with a ${m[1]}: acknowledge it in the session console before a new run.`],
 ];
+// ISO 8601 times in a message (the API speaks UTC) in this browser's local time, as the week view shows them.
+const ISO_TIME = /\b(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2}(?::\d{2}(?:\.\d+)?)?)(Z|[+-]\d{2}:?\d{2})\b/g;
+export function localTimes(text) {
+  return String(text).replace(ISO_TIME, (match) => {
+    const when = new Date(match.replace(" ", "T"));
+    return Number.isNaN(when.getTime()) ? match
+      : when.toLocaleString(undefined, { weekday: "short", day: "numeric", month: "short", hour: "2-digit", minute: "2-digit" });
+  });
+}
+
 export function conflictWords(message) {
-  const text = String(message || "");
+  const text = localTimes(message || "");
   for (const [pattern, answer] of CONFLICT_PATTERNS) {
     const match = pattern.exec(text);
     if (match) return typeof answer === "function" ? answer(match) : answer;

@@ -12,6 +12,7 @@ from server.db import writes
 from server.errors import ConflictError
 from server.reviews.models import RunNote
 from server.reviews.schemas import AcknowledgementOut, RunNotesIn, RunNotesOut, RunReviewOut
+from server.scheduling.service import get_booking
 from server.sessions.models import SessionEvent, SessionRun
 from server.sessions.service import add_event, get_run
 
@@ -88,6 +89,20 @@ def pending_on_robot(*, session: Session, robot: str) -> RunReviewOut | None:
     if last is None or not needs_acknowledgement(session, last):
         return None
     return review_of(session, last)
+
+
+def refuse_start_while_unacknowledged(*, session: Session, session_id: int) -> None:
+    """Refuses to start motion on a robot whose last run ended in a fall, fault or limit stop that nobody
+    acknowledged; checked before the worker is commanded (nothing moves, nothing is written)."""
+    booking = get_booking(session=session, session_id=session_id)
+    pending = pending_on_robot(session=session, robot=booking.robot)
+    if pending is not None:
+        what = (pending.outcome or "stop").replace("_", " ")
+        raise ConflictError(
+            f"run {pending.run_id} on {booking.robot} ended with a {what} that is not acknowledged: acknowledge it "
+            f"(POST /api/v1/runs/{pending.run_id}/acknowledge) before the robot starts again",
+            field="acknowledgement",
+        )
 
 
 @writes

@@ -179,3 +179,21 @@ def test_a_patient_without_sex_is_refused(client: TestClient, seed: Seed) -> Non
     body = {key: value for key, value in PATIENT.items() if key != "sex"}
     response = client.post("/api/v1/patients", json=body, headers=seed.headers())
     assert response.status_code == 422 and response.json()["detail"][0]["loc"] == ["body", "sex"]
+
+
+def test_the_robot_does_not_start_again_before_the_fall_is_acknowledged(
+    robot_client: TestClient, seed: Seed, fake_worker: FakeWorker
+) -> None:
+    run = _fallen_run(robot_client, seed, fake_worker)
+    booking = robot_client.get(f"/api/v1/sessions/{run['scheduled_session_id']}", headers=seed.headers()).json()
+    commands_before = fake_worker.command_names()
+    refused = robot_client.post(f"/api/v1/sessions/{booking['id']}/start", headers=seed.headers())
+    assert refused.status_code == 409, refused.text
+    assert refused.json()["field"] == "acknowledgement" and f"run {run['id']}" in refused.json()["detail"]
+    assert fake_worker.command_names() == commands_before  # nothing was sent to the robot
+    runs = robot_client.get(f"/api/v1/sessions/{booking['id']}/runs", headers=seed.headers()).json()
+    assert [r["id"] for r in runs] == [run["id"]]  # nothing was written
+    robot_client.post(f"/api/v1/runs/{run['id']}/acknowledge", json={}, headers=seed.headers())
+    started = robot_client.post(f"/api/v1/sessions/{booking['id']}/start", headers=seed.headers())
+    assert started.status_code == 200, started.text
+    assert fake_worker.command_names()[len(commands_before) :] == ["load_prescription", "start_motion"]
