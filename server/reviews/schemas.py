@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import datetime as dt
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from server.api_types import LongText, RequestModel, ResponseModel
 
 
 class AcknowledgementIn(RequestModel):
     note: LongText = Field(default="", description="What was checked or done before the next run (optional).")
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"note": "Patient attended to; harness checked."}]})
 
 
 class AcknowledgementOut(ResponseModel):
@@ -27,6 +29,19 @@ class RunNotesIn(RequestModel):
     objective: LongText = Field(default="", description="O: what the therapist observed or measured.")
     assessment: LongText = Field(default="", description="A: the therapist's interpretation.")
     plan: LongText = Field(default="", description="P: the next step (progression, changes to the prescription).")
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "subjective": "Mild dizziness after segment 2.",
+                    "objective": "One step to the right at 25 s.",
+                    "assessment": "Lateral control improving.",
+                    "plan": "Same amplitude, shorter segments.",
+                }
+            ]
+        }
+    )
 
 
 class RunNotesOut(RunNotesIn):

@@ -263,3 +263,21 @@ def console(browser: Any, clinic: dict[str, Any], request: pytest.FixtureRequest
     failed = bool(getattr(request.node, "rep_call", None) and request.node.rep_call.failed)
     for made in opened:
         made.close(failed)
+
+
+def fill_patient(
+    page: Any, identifier: str, name: str, born: str, sex: str | None, height_cm: str, mass_kg: str
+) -> None:
+    """Fills the new-patient form (sex None: left unchosen)."""
+    page.get_by_label("Record number").fill(identifier)
+    page.get_by_label("Name").fill(name)
+    page.get_by_label("Date of birth").fill(born)
+    if sex is not None:
+        page.get_by_label("Sex").select_option(sex)
+    page.get_by_label("Height").fill(height_cm)
+    page.get_by_label("Body mass").fill(mass_kg)
+
+
+def field_error(page: Any, label: str) -> Any:
+    """The message shown beside the field with this label."""
+    return page.locator(".field:has(#" + page.get_by_label(label).get_attribute("id") + ") .field-error")

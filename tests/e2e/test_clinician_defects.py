@@ -12,7 +12,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import THERAPIST, VIEWPORTS
+from tests.e2e.conftest import THERAPIST, VIEWPORTS, field_error, fill_patient
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -160,12 +160,17 @@ def test_runs_panel_keeps_choices_and_buttons(console: Any, clinic: dict[str, An
     expect(fmt).to_have_value("parquet")
 
 
-def test_heading_follows_the_saved_version(console: Any, clinic: dict[str, Any]) -> None:
+def _new_prescription(console: Any, clinic: dict[str, Any], name: str) -> Any:
     session = console()
     page = session.login()
     session.go(f"#/prescriptions/new?patient={clinic['patient']['id']}")
-    page.get_by_label("Prescription name").fill("Versioned sway")
+    page.get_by_label("Prescription name").fill(name)
     page.get_by_label("Duration").fill("20")
+    return page
+
+
+def test_heading_follows_the_saved_version(console: Any, clinic: dict[str, Any]) -> None:
+    page = _new_prescription(console, clinic, "Versioned sway")
     page.get_by_role("button", name="Save prescription").click()
     expect(page.get_by_role("heading", name="Prescription: Versioned sway (v1)")).to_be_visible()
     page.get_by_label("Duration").fill("25")
@@ -177,12 +182,7 @@ def test_error_banner_goes_after_success(console: Any, clinic: dict[str, Any]) -
     session = console()
     page = session.login()
     session.go("#/patients/new")
-    page.get_by_label("Record number").fill(clinic["patient"]["identifier"])  # already taken: 409
-    page.get_by_label("Name").fill("Erika Beispiel")
-    page.get_by_label("Date of birth").fill("1961-07-08")
-    page.get_by_label("Sex").select_option("female")
-    page.get_by_label("Height").fill("165")
-    page.get_by_label("Body mass").fill("60")
+    fill_patient(page, clinic["patient"]["identifier"], "Erika Beispiel", "1961-07-08", "female", "165", "60")  # taken
     page.get_by_role("button", name="Create patient").click()
     expect(page.locator(".banner.error, .field-error").first).to_be_visible()
     page.get_by_label("Record number").fill("MRN-DEF-2")
@@ -265,11 +265,7 @@ def test_placeholders_whole(console: Any, clinic: dict[str, Any]) -> None:
 
 
 def test_refused_prescription_warns_before_saving(console: Any, clinic: dict[str, Any]) -> None:
-    session = console()
-    page = session.login()
-    session.go(f"#/prescriptions/new?patient={clinic['patient']['id']}")
-    page.get_by_label("Prescription name").fill("Too wide")
-    page.get_by_label("Duration").fill("20")
+    page = _new_prescription(console, clinic, "Too wide")
     page.get_by_label("Amplitude").fill("3")
     page.get_by_label("Frequency").fill("0.1")  # 3 m/s² at 0.1 Hz needs metres of travel
     page.get_by_role("button", name="Preview motion").click()
@@ -287,14 +283,9 @@ def test_errors_in_screen_units_and_numbering(console: Any, clinic: dict[str, An
     session = console()
     page = session.login()
     session.go("#/patients/new")
-    page.get_by_label("Record number").fill("MRN-DEF-3")
-    page.get_by_label("Name").fill("Hans Gross")
-    page.get_by_label("Date of birth").fill("1955-01-01")
-    page.get_by_label("Sex").select_option("male")
-    page.get_by_label("Height").fill("300")
-    page.get_by_label("Body mass").fill("80")
+    fill_patient(page, "MRN-DEF-3", "Hans Gross", "1955-01-01", "male", "300", "80")
     page.get_by_role("button", name="Create patient").click()
-    error = page.locator(".field:has(#" + page.get_by_label("Height").get_attribute("id") + ") .field-error")
+    error = field_error(page, "Height")
     expect(error).to_contain_text("250 cm")
     expect(error).not_to_contain_text("0.5")
     session.go(f"#/prescriptions/new?patient={clinic['patient']['id']}")

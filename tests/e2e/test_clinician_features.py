@@ -12,7 +12,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import THERAPIST
+from tests.e2e.conftest import THERAPIST, field_error, fill_patient
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -30,24 +30,15 @@ RECORDED_CUE = "time_s,specific_force_x_m_s2,specific_force_y_m_s2,specific_forc
 )
 
 
-def _fill_patient(page: Any, identifier: str, name: str) -> None:
-    page.get_by_label("Record number").fill(identifier)
-    page.get_by_label("Name").fill(name)
-    page.get_by_label("Date of birth").fill("1948-11-12")
-    page.get_by_label("Height").fill("171")
-    page.get_by_label("Body mass").fill("70")
-
-
 def test_patient_notes_edit_archive_and_no_default_sex(console: Any) -> None:
     session = console()
     page = session.login()
     session.go("#/patients/new")
     expect(page.get_by_label("Sex")).to_have_value("")  # no silent default
-    _fill_patient(page, "MRN-FEAT-1", "Ørjan Lindqvist")
+    fill_patient(page, "MRN-FEAT-1", "Ørjan Lindqvist", "1948-11-12", None, "171", "70")
     page.get_by_label("Notes").fill("hearing aid on the left")
     page.get_by_role("button", name="Create patient").click()
-    sex_error = page.locator(".field:has(#" + page.get_by_label("Sex").get_attribute("id") + ") .field-error")
-    expect(sex_error).to_contain_text("Sex")
+    expect(field_error(page, "Sex")).to_contain_text("Sex")
     page.get_by_label("Sex").select_option("male")
     page.get_by_role("button", name="Create patient").click()
     expect(page.get_by_role("heading", name="Ørjan Lindqvist")).to_be_visible()
