@@ -184,14 +184,25 @@ const CONFLICT_PATTERNS = [
   [/already acknowledged/i, "This stop has already been acknowledged."],
   [/ended with an? ([\w ]+) that is not acknowledged/i, (m) => `The robot's last run ended with a ${m[1]}: acknowledge it in the session console before a new run.`],
 ];
-// ISO 8601 times in a message (the API speaks UTC) in this browser's local time, as the week view shows them.
-const ISO_TIME = /\b(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2}(?::\d{2}(?:\.\d+)?)?)(Z|[+-]\d{2}:?\d{2})\b/g;
+// Times the API quotes in UTC — ISO 8601 with an offset, or "YYYY-MM-DD HH:MM [to HH:MM] UTC" — in this
+// browser's local time, as the week view shows them.
+const UTC_SPAN = /\b(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2})(?: to (\d{2}:\d{2}))? UTC\b/g;
+const ISO_TIME = /\b(\d{4}-\d{2}-\d{2})T(\d{2}:\d{2}(?::\d{2}(?:\.\d+)?)?)(Z|[+-]\d{2}:?\d{2})(?![\w:])/g;
+const localDateTime = (when) => when.toLocaleString(undefined, { weekday: "short", day: "numeric", month: "short", hour: "2-digit", minute: "2-digit" });
+const localClock = (when) => when.toLocaleTimeString(undefined, { hour: "2-digit", minute: "2-digit" });
 export function localTimes(text) {
-  return String(text).replace(ISO_TIME, (match) => {
-    const when = new Date(match.replace(" ", "T"));
-    return Number.isNaN(when.getTime()) ? match
-      : when.toLocaleString(undefined, { weekday: "short", day: "numeric", month: "short", hour: "2-digit", minute: "2-digit" });
-  });
+  return String(text)
+    .replace(UTC_SPAN, (match, day, start, end) => {
+      const from = new Date(`${day}T${start}:00Z`);
+      if (!end) return localDateTime(from);
+      const to = new Date(`${day}T${end}:00Z`);
+      if (to < from) to.setUTCDate(to.getUTCDate() + 1);
+      return `${localDateTime(from)} to ${localClock(to)}`;
+    })
+    .replace(ISO_TIME, (match) => {
+      const when = new Date(match);
+      return Number.isNaN(when.getTime()) ? match : localDateTime(when);
+    });
 }
 
 export function conflictWords(message) {

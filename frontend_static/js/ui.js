@@ -1,5 +1,5 @@
 // DOM helpers, banners, the confirmation dialog and unit formatting shared by every page.
-import { conflictWords, fieldMessage } from "./language.js";
+import { conflictWords, fieldMessage, localTimes } from "./language.js";
 
 // h("tag.class#id", {attrs}, ...children): a small element builder (text children are escaped by the DOM).
 export function h(spec, attrs = {}, ...children) {
@@ -86,7 +86,7 @@ export function showFieldErrors(form, errors) {
   const unplaced = [];
   for (const [name, error] of Object.entries(errors)) {
     const input = findField(form, name);
-    const words = (meta) => (typeof error === "string" ? error : fieldMessage({ path: name, ...error }, meta));
+    const words = (meta) => (typeof error === "string" ? localTimes(error) : fieldMessage({ path: name, ...error }, meta));
     if (!input) { unplaced.push(words({})); continue; }
     const message = words(fieldMeta(input));
     input.classList.add("invalid");

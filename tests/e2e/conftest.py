@@ -218,9 +218,10 @@ class Console:
     """One browser context logged in through the login page, with JavaScript errors collected."""
 
     def __init__(self, browser: Any, base_url: str, name: str, *, user: tuple[str, ...] = ADMIN,
-                 viewport: tuple[int, int] = (1280, 800), offline: bool = False) -> None:  # fmt: skip
+                 viewport: tuple[int, int] = (1280, 800), offline: bool = False,
+                 timezone: str | None = None) -> None:  # fmt: skip
         self.base_url, self.name = base_url, name
-        self.context = browser.new_context(viewport={"width": viewport[0], "height": viewport[1]})
+        self.context = browser.new_context(viewport={"width": viewport[0], "height": viewport[1]}, timezone_id=timezone)
         if offline:  # everything but this service is unreachable: no CDN, no fonts
             self.context.route(re.compile(r"^https?://(?!127\.0\.0\.1[:/])"), lambda route: route.abort())
         self.page = self.context.new_page()

@@ -187,3 +187,35 @@ def test_history_links_the_pdf_report_of_a_run(console: Any, clinic: dict[str, A
     text = " ".join(" ".join(p.extract_text() for p in PdfReader(io.BytesIO(response.body())).pages).split())
     assert "Jürgen Äbischer" in text and "fall detected" in text and "harness load 412 N" in text, text[:2000]
     assert "25.0 s" in text, text[:2000]
+
+
+def test_booking_conflicts_are_quoted_in_local_time(console: Any, clinic: dict[str, Any]) -> None:
+    import datetime as dt
+    from zoneinfo import ZoneInfo
+
+    session = console(timezone="Europe/Berlin")
+    page = session.login()
+    taken = dt.datetime.fromisoformat(clinic["booking"]["start"])
+    local = taken.astimezone(ZoneInfo("Europe/Berlin"))
+    session.go(f"#/schedule?week={local.date().isoformat()}")
+    page.get_by_label("Start").fill(local.strftime("%Y-%m-%dT%H:%M"))  # the same robot at the same time
+    page.get_by_role("button", name="Book session").click()
+    message = field_error(page, "Start")
+    expect(message).to_contain_text(local.strftime("%I:%M %p"))  # Berlin time, as the week shows it
+    expect(message).not_to_contain_text("UTC")
+
+
+def test_soap_notes_are_kept_per_run(console: Any, clinic: dict[str, Any]) -> None:
+    session = console()
+    page = session.login()
+    session.go(f"#/session/{clinic['fall_booking']['id']}")
+    panel = page.locator(f'#runs [data-run-id="{clinic["fall_run_id"]}"]')
+    panel.get_by_text("Therapist notes (SOAP)").click()
+    panel.get_by_label("S: subjective").fill("Felt unsteady after the turn.")
+    panel.get_by_label("P: plan").fill("Repeat at 0.3 m/s² next week.")
+    panel.get_by_role("button", name=re.compile("Save notes")).click()
+    expect(panel.get_by_text("Notes saved")).to_be_visible()
+    page.reload()
+    panel.get_by_text("Therapist notes (SOAP)").click()
+    expect(panel.get_by_label("S: subjective")).to_have_value("Felt unsteady after the turn.")
+    expect(panel.get_by_label("P: plan")).to_have_value("Repeat at 0.3 m/s² next week.")
