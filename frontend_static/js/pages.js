@@ -47,6 +47,7 @@ export function loginPage(main, { onLogin }) {
 }
 
 // --- patients ------------------------------------------------------------------------------------
+const FAULTED_OUTCOMES = new Set(["fall", "fault", "limit_hit", "emergency_stop"]);
 const SEXES = ["female", "male", "other", "unknown"];
 const SIDES = ["none", "left", "right", "both"];
 
@@ -149,12 +150,12 @@ export async function patientPage(main, patientId) {
       metric("Date of birth", patient.date_of_birth), metric("Sex", patient.sex),
       metric("Height", fmt(patient.height_m * 100, "cm", 0)), metric("Body mass", fmt(patient.body_mass_kg, "kg", 1)),
       metric("Diagnosis", patient.diagnosis || "—"), metric("Affected side", patient.affected_side)),
-    patient.archived_at ? h("p.verdict.bad", { role: "status" }, `Archived on ${fmtDateTime(patient.archived_at)}: the record is kept, but it is left out of the lists.`) : null,
+    patient.archived_at ? h("p.verdict.bad", { role: "status" }, `Archived on ${fmtDateTime(patient.archived_at)}: the record is kept, but it is left out of the lists.`) : "",
     h("p", {}, h("strong", {}, "Contraindications: "), patient.contraindications || "none recorded"),
     h("div.panel#patient-notes", {}, h("strong", {}, "Notes: "), patient.notes ? h("span.pre-line", {}, patient.notes) : h("span.muted", {}, "none")),
     h("div.row", {}, h("a.button", { href: `#/patients/${patientId}/edit` }, "Edit patient"),
       h("button.secondary", { type: "button", onclick: () => archivePatient(patient) }, patient.archived_at ? "Restore from archive" : "Archive patient"),
-      h("a.button", { href: `/api/v1/patients/${patientId}/progress.pdf`, target: "_blank" }, "Progress report (PDF)"),
+      progressReportLink(patientId),
       h("a.button", { href: `#/protocols?patient=${patientId}` }, "Start from a protocol")),
     h("h2", {}, "Prescriptions"),
     h("div.row", {}, h("a.button.primary", { href: `#/prescriptions/new?patient=${patientId}` }, "New prescription"),
@@ -168,19 +169,35 @@ export async function patientPage(main, patientId) {
   main.append(h("h2", {}, "Balance trend"), h("p", {}, `${trend.length} recorded run(s), ${falls} fall(s).`));
   const measured = trend.filter((run) => run.sway);
   if (measured.length) {
-    const charts = h("div.charts");
+    // One measure and one unit per chart, by date; runs that ended in a fall, fault or stop are marked.
+    const charts = h("div.charts#balance-trend");
     main.append(charts);
-    const x = measured.map((_, i) => i + 1);
-    staticChart(charts, "COP sway: RMS distance and 95 % ellipse", "mm / cm²", x,
-      [measured.map((r) => r.sway.rms_distance_m * M_TO_MM), measured.map((r) => r.sway.ellipse_area_95_m2 * 1e4)],
-      [{ label: "RMS distance (mm)" }, { label: "95 % ellipse area (cm²)" }], { xLabel: "run number" });
-    staticChart(charts, "COP mean velocity and falls", "mm/s / count", x,
-      [measured.map((r) => r.sway.mean_velocity_m_s * M_TO_MM), measured.map((r) => r.falls)],
-      [{ label: "Mean COP velocity (mm/s)" }, { label: "Falls (count)" }], { xLabel: "run number" });
+    const x = measured.map((r) => new Date(r.started_at).getTime() / 1000);
+    const faulted = measured.map((r) => FAULTED_OUTCOMES.has(r.outcome));
+    const trendChart = (title, unit, values) => staticChart(charts, title, unit, x,
+      [values, values.map((v, i) => (faulted[i] ? v : null))],
+      [{ label: title, points: 6, spanGaps: true }, { label: "ended by a fall, fault or stop", color: "#b00020", points: 10, pointsOnly: true }],
+      { xLabel: "date", xTime: true, yRange: (u, min, max) => [0, max > 0 ? max * 1.15 : 1] });
+    trendChart("RMS distance of the COP", "mm", measured.map((r) => r.sway.rms_distance_m * M_TO_MM));
+    trendChart("Mean COP velocity", "mm/s", measured.map((r) => r.sway.mean_velocity_m_s * M_TO_MM));
+    trendChart("95 % ellipse area", "cm²", measured.map((r) => r.sway.ellipse_area_95_m2 * 1e4));
+    trendChart("Falls", "count", measured.map((r) => r.falls));
   } else {
     main.append(h("p.muted", {}, "No run with force-plate data yet: the trend appears after the first session."));
   }
   main.append(h("h2", {}, "Session history"), await sessionsTable(bookings.slice().reverse()));
+}
+
+// The progress report over a period (both dates optional, inclusive).
+function progressReportLink(patientId) {
+  const from = h("input", { type: "date", "aria-label": "Progress report from" });
+  const to = h("input", { type: "date", "aria-label": "Progress report to" });
+  const link = h("a.button", { target: "_blank" }, "Progress report (PDF)");
+  const update = () => { link.href = `/api/v1/patients/${patientId}/progress.pdf${query({ from: from.value, to: to.value })}`; };
+  from.addEventListener("change", update);
+  to.addEventListener("change", update);
+  update();
+  return h("span.row.progress-report", {}, link, h("label", {}, "from ", from), h("label", {}, "to ", to));
 }
 
 async function archivePatient(patient) {

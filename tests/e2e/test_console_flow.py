@@ -151,6 +151,13 @@ def test_clinician_flow(console_service: dict[str, object], browser: Any) -> Non
         page.get_by_role("link", name="Session history").click()
         expect(page.get_by_role("heading", name="Session history")).to_be_visible()
         shot(page, "history")
+
+        # The balance trend: one measure and one unit per chart, by date (issue 16).
+        page.get_by_role("link", name="Patients").click()
+        page.get_by_role("row").filter(has_text="Ada Example").get_by_role("link", name="Open profile").click()
+        expect(page.locator("#balance-trend .chart")).to_have_count(4)
+        expect(page.locator("#main")).not_to_contain_text("null")
+        shot(page, "balance-trend")
     except Exception:
         shot(page, "failure")  # the page as it was when the flow broke
         raise
