@@ -2,7 +2,7 @@
 // live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
 import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
-import { OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
+import { CLINICAL_EVENTS, OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
@@ -252,7 +252,7 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (!events.length) return h("p.muted", {}, "No events.");
     return table(["Event", "Time into the run", "Clock time", "What happened"], events.map((e) => {
       const into = sessionTime(e, run, start);
-      return h("tr", { dataset: { kind: e.kind } },
+      return h(`tr${CLINICAL_EVENTS.has(e.kind) ? "" : ".engineering-only"}`, { dataset: { kind: e.kind } },
         h("td", {}, h("span.event-kind", {}, eventTitle(e))),
         h("td.num", {}, into === null ? "—" : fmt(into, "s", 1)),
         h("td", {}, new Date(e.utc).toLocaleTimeString()),
