@@ -26,6 +26,7 @@ from sqlalchemy.exc import IntegrityError, InternalError, OperationalError
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from core.robot import default_twin, load_twin
+from server.api_docs import install_offline_docs
 from server.auth.dependencies import AuthState
 from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
@@ -94,6 +95,9 @@ def _error_handlers(app: FastAPI) -> None:
                 "loc": ["body", *error.field.split(".")],
                 "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
                 "type": "value_error",
+                # The parts apart, as pydantic's own errors carry them: clients word them in their units.
+                "input": _json_safe(jsonable_encoder(error.value)),
+                "ctx": {"limit": error.limit},
             }
         ]
         return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
@@ -123,14 +127,14 @@ def _error_handlers(app: FastAPI) -> None:
 
 
 def _announce_first_start(database: Database, settings: Settings) -> None:
+    from server.users.first_admin import first_admin_command
     from server.users.service import count_users
 
     with database.session() as session:
         if count_users(session=session) == 0:
             logger.warning(
-                "no accounts yet: create the first admin with\n"
-                "    ssp-rehab create-user --username admin --password '<password>' --role admin --data-dir %s",
-                settings.data_dir,
+                "no accounts yet: create the first admin with this command (it asks for the password):\n    %s",
+                first_admin_command(settings.data_dir.resolve()),
             )
 
 
@@ -142,6 +146,8 @@ def _api_router() -> APIRouter:
     from server.prescriptions.preview import router as prescription_preview_router
     from server.prescriptions.routes import router as prescriptions_router
     from server.scheduling.routes import public_router as scheduling_public_router
+    from server.reports.routes import router as reports_router
+    from server.reviews.routes import router as reviews_router
     from server.scheduling.routes import router as scheduling_router
     from server.sessions.balance import router as balance_router
     from server.sessions.routes import estop_router, websocket_router
@@ -168,6 +174,8 @@ def _api_router() -> APIRouter:
         scheduling_router,
         scheduling_public_router,
         sessions_router,
+        reviews_router,
+        reports_router,
         estop_router,
         audit_router,
         viz_router,
@@ -235,6 +243,8 @@ def create_app(
         description="Therapist console of the twin 6-SSP balance-rehabilitation robot. Log in with "
         "`POST /api/v1/auth/login`, then send the `access_token` as a bearer token (or use the session cookie).",
         lifespan=lifespan,
+        docs_url=None,  # served from local assets below (server.api_docs)
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.twin = twin
@@ -257,6 +267,7 @@ def create_app(
     app.include_router(_api_router())
     frontend = settings.resolved_frontend_dir()
     if frontend is not None:
+        install_offline_docs(app)
         app.mount("/", StaticFiles(directory=frontend, html=True), name="frontend")
     _install_access_log_redaction()
     install_log_redaction()

@@ -278,6 +278,7 @@ MODEL_MODULES = (
     "server.scheduling.models",
     "server.sessions.models",
     "server.audit.models",
+    "server.reviews.models",
 )
 
 

@@ -9,6 +9,7 @@ export class ApiError extends Error {
     this.status = status;
     this.detail = detail;
     this.fieldErrors = fieldErrors(detail);
+    this.fieldItems = fieldItems(detail);
   }
 }
 
@@ -23,6 +24,19 @@ export function fieldErrors(detail) {
     errors[name || "_"] = item.msg;
   }
   return errors;
+}
+
+// The same refusals with their structured parts (path, type, input value, ctx limits) for the translation
+// into the screen's units and numbering (js/language.js).
+export function fieldItems(detail) {
+  const items = {};
+  for (const [name, msg] of Object.entries(fieldErrors(detail))) items[name] = { path: name, msg };
+  if (!Array.isArray(detail)) return items;
+  for (const item of detail) {
+    const name = Object.keys(fieldErrors([item]))[0];
+    items[name] = { path: name, msg: item.msg, type: item.type, input: item.input, ctx: item.ctx };
+  }
+  return items;
 }
 
 function describeDetail(detail) {

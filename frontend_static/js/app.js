@@ -1,8 +1,11 @@
 // Entry point: hash routing, the login state, the always-present emergency stop and the robot status.
 import { get, post } from "./api.js";
+import { adminPage } from "./admin.js";
 import { sessionPage } from "./console.js";
-import { historyPage, loginPage, newPatientPage, patientPage, patientsPage, prescriptionPage, schedulePage } from "./pages.js";
-import { banner, clear, clearBanner, errorText, h } from "./ui.js";
+import { protocolsPage } from "./protocols.js";
+import { editPatientPage, historyPage, loginPage, newPatientPage, patientPage, patientsPage, prescriptionPage, schedulePage } from "./pages.js";
+import { describeRobot } from "./language.js";
+import { banner, clear, clearBanner, clearErrors, engineeringOn, errorText, h, setEngineering } from "./ui.js";
 
 // The software emergency stop: ONE request, no confirmation, from every page; the key is Escape,
 // caught before anything else (also while typing in a field or with a dialog open).
@@ -38,16 +41,25 @@ const main = document.getElementById("main");
 const nav = document.getElementById("nav");
 const logout = document.getElementById("logout");
 const userName = document.getElementById("user-name");
+const engineeringSwitch = document.getElementById("engineering-switch");
+const adminLinks = document.querySelectorAll("[data-admin]");
 
 function setUser(next) {
   user = next;
   nav.hidden = !user;
   logout.hidden = !user;
+  engineeringSwitch.closest("label").hidden = !user;
+  adminLinks.forEach((link) => { link.hidden = !user || user.role !== "admin"; });
   userName.textContent = user ? `${user.full_name || user.username} (${user.role})` : "";
+  userName.title = userName.textContent;
 }
+engineeringSwitch.checked = engineeringOn();
+document.body.classList.toggle("engineering", engineeringSwitch.checked);
+engineeringSwitch.addEventListener("change", () => setEngineering(engineeringSwitch.checked));
 logout.addEventListener("click", async () => {
   await post("/auth/logout").catch(() => null);
   setUser(null);
+  clearErrors("robot", "robot-alert", "fault");
   location.hash = "#/login";
 });
 window.addEventListener("ssp:unauthorised", () => {
@@ -55,24 +67,33 @@ window.addEventListener("ssp:unauthorised", () => {
   if (location.hash !== "#/login") location.hash = "#/login";
 });
 
-// --- robot status in the top bar: offline, fault and latched emergency stop are always visible ------
+// --- robot status in the top bar: offline, faults, abnormal stops and a latched emergency stop are always
+// visible, in red, with the reason and the next step in words (js/language.js) ---------------------------
 const robotStatus = document.getElementById("robot-status");
+function showRobot(state) {
+  const shown = describeRobot(state);
+  robotStatus.className = `robot-status ${shown.level}`;
+  robotStatus.textContent = `Robot: ${shown.label}`;
+  robotStatus.dataset.stopReason = shown.stopReason;
+  clearBanner("robot");
+  if (shown.level === "bad") {
+    const alert = banner(shown.stopReason === "fall" ? "fall" : "error", shown.reason, { key: "robot-alert", sticky: true });
+    alert.querySelector("span").append(h("span.next-step", {}, shown.next));
+  } else {
+    clearBanner("robot-alert");
+  }
+}
 async function pollRobot() {
   if (!user) { robotStatus.textContent = ""; robotStatus.className = "robot-status"; return; }
   try {
-    const state = await get("/robot/state");
-    const bad = state.state === "fault" || state.estop_latched;
-    robotStatus.className = `robot-status ${bad ? "bad" : state.state === "running" ? "warn" : "ok"}`;
-    robotStatus.textContent = `Robot: ${state.estop_latched ? "E-STOP LATCHED" : state.state.toUpperCase()}`;
-    clearBanner("robot");
-    if (state.state === "fault") banner("error", `Worker fault (${state.stop_reason.replace(/_/g, " ")}): motion is stopped. Check the robot, then Reset in the session console.`, { key: "fault", sticky: true });
-    else clearBanner("fault");
+    showRobot(await get("/robot/state"));
   } catch (error) {
     robotStatus.className = "robot-status bad";
     robotStatus.textContent = error.status === 503 ? "Robot: OFFLINE" : "Robot: unknown";
     if (error.status === 503) banner("error", errorText(error), { key: "robot", sticky: true });
   }
 }
+window.addEventListener("ssp:robot-state", (event) => { if (user) showRobot(event.detail); });
 setInterval(pollRobot, 2000);
 
 // --- routing ---------------------------------------------------------------------------------------
@@ -81,23 +102,32 @@ const ROUTES = [
   [/^#\/patients$/, () => patientsPage(main)],
   [/^#\/patients\/new$/, () => newPatientPage(main)],
   [/^#\/patients\/(\d+)$/, (m) => patientPage(main, Number(m[1]))],
+  [/^#\/patients\/(\d+)\/edit$/, (m) => editPatientPage(main, Number(m[1]))],
   [/^#\/prescriptions\/new$/, (m, params) => prescriptionPage(main, null, params)],
   [/^#\/prescriptions\/(\d+)$/, (m, params) => prescriptionPage(main, Number(m[1]), params)],
   [/^#\/schedule$/, (m, params) => schedulePage(main, params)],
   [/^#\/session\/(\d+)$/, (m, params, cleanup) => sessionPage(main, Number(m[1]), cleanup)],
   [/^#\/history$/, (m, params) => historyPage(main, params)],
+  [/^#\/admin$/, () => adminPage(main, user)],
+  [/^#\/protocols$/, (m, params) => protocolsPage(main, params)],
 ];
 let cleanup = [];
 
 async function route() {
   cleanup.forEach((fn) => fn());
   cleanup = [];
+  // A dialog belongs to the page that opened it; form and command errors too.
+  document.querySelectorAll("dialog[open]").forEach((dialog) => dialog.close());
+  clearErrors("form", "command", "login");
   const [path, search] = (location.hash || "#/patients").split("?");
   const params = new URLSearchParams(search || "");
   if (!user && path !== "#/login") {
     try { setUser(await get("/auth/me")); } catch (_) { location.hash = "#/login"; return; }
   }
   clear(main);
+  const onLogin = path === "#/login";
+  nav.hidden = !user || onLogin;
+  logout.hidden = !user || onLogin;
   document.querySelectorAll("nav a").forEach((a) => a.classList.toggle("active", path.startsWith(a.getAttribute("href"))));
   for (const [pattern, render] of ROUTES) {
     const match = path.match(pattern);

@@ -7,26 +7,31 @@ export const PALETTE = ["#0b4fa8", "#d1495b", "#00798c", "#edae49", "#6a4c93", "
 function chartWidth(host) { return Math.max(320, (host.clientWidth || 600) - 12); }
 
 // series: [{label, color?, dash?}], unit: axis unit shown in the title and on every value.
-function options(title, unit, series, { height = 240, xLabel = "time (s)", yRange, ySoft = 1 } = {}) {
+// xTime: x holds dates (POSIX seconds), labelled as dates. A series with pointsOnly draws marks, no line.
+function options(title, unit, series, { height = 240, xLabel = "time (s)", yRange, ySoft = 1, xTime = false } = {}) {
   return {
     title: `${title} (${unit})`,
     width: 600,
     height,
     // A flat signal keeps a readable axis (±ySoft) instead of uPlot's default 0–100.
-    scales: { x: { time: false }, y: { range: yRange || ((u, min, max) => [Math.min(min ?? 0, -ySoft), Math.max(max ?? 0, ySoft)]) } },
+    // Dates: a single day still gets a readable axis (a day either side) instead of years.
+    scales: { x: xTime ? { time: true, range: (u, min, max) => (max - min < 86400 ? [min - 86400, max + 86400] : [min, max]) } : { time: false }, y: { range: yRange || ((u, min, max) => [Math.min(min ?? 0, -ySoft), Math.max(max ?? 0, ySoft)]) } },
     axes: [
       { label: xLabel, stroke: "#111", grid: { stroke: "#ddd" }, font: "14px system-ui", labelFont: "bold 14px system-ui" },
       { label: unit, stroke: "#111", grid: { stroke: "#ddd" }, font: "14px system-ui", labelFont: "bold 14px system-ui", size: 64 },
     ],
     legend: { live: true },
     series: [
-      { label: "t", value: (u, v) => (v == null ? "—" : `${v.toFixed(2)} s`) },
+      xTime ? { label: "date", value: (u, v) => (v == null ? "—" : new Date(v * 1000).toLocaleString()) }
+        : { label: "t", value: (u, v) => (v == null ? "—" : `${v.toFixed(2)} s`) },
       ...series.map((s, i) => ({
         label: s.label,
         stroke: s.color || PALETTE[i % PALETTE.length],
         width: s.width || 2,
         dash: s.dash,
-        spanGaps: false,
+        spanGaps: Boolean(s.spanGaps),
+        ...(s.points ? { points: { show: true, size: s.points, fill: s.color } } : {}),
+        ...(s.pointsOnly ? { paths: () => null } : {}),
         value: (u, v) => (v == null ? "—" : `${v.toFixed(s.digits ?? 2)} ${unit}`),
       })),
     ],
@@ -63,5 +68,6 @@ export class LiveChart {
       setTimeout(() => { this.pending = false; this.plot.setData(this.data); }, 80);
     }
   }
+  reset() { this.data = this.data.map(() => []); this.plot.setData(this.data); }
   resize() { this.plot.setSize({ width: chartWidth(this.box), height: this.plot.height }); }
 }

@@ -1,12 +1,22 @@
 // The live session console: run control with a confirmation before motion, the embedded 3D view,
 // live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
-import { get, post } from "./api.js";
+import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
+import { CLINICAL_EVENTS, OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
 import { metric } from "./pages.js";
-import { M_TO_MM, badge, banner, clear, confirmDialog, fmt, fmtDateTime, h, showError, table } from "./ui.js";
+import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
 const GRAVITY_M_S2 = 9.80665;
 const EXPORT_FORMATS = [["csv", "CSV (zip)"], ["parquet", "Parquet"], ["json", "JSON"], ["c3d", "C3D"]];
+// The buttons follow the robot's true state, not only the run records: after an emergency stop or a
+// fault, Start stays disabled until the robot is reset (the worker would refuse it anyway). Module scope:
+// telemetry frames may arrive while the page is still loading.
+const STARTABLE_ROBOT_STATES = ["idle", "ready", "stopped"];
+const ACKNOWLEDGEMENT_CHECKS = [
+  "I have attended to the patient, who is safe and able to continue (or the session ends here).",
+  "I know what caused the stop (see the run's events) and have removed the cause.",
+  "The harness, the foot plates and the working area are checked.",
+];
 const SLIDER_LABELS = Array.from({ length: 12 }, (_, i) => `${i < 6 ? "R" : "L"}${(i % 6) + 1}`);
 
 // Specific force the platform delivers at the feet, stance frame: Rᵀ(a + g e_z) − g e_z, R = Rx·Ry·Rz
@@ -55,6 +65,10 @@ export async function sessionPage(main, sessionId, cleanup) {
   const vizHost = h("div#viz-host");
   const vizStatus = h("p.muted#viz-status", { role: "status" }, "3D view: connecting…");
   const chartsHost = h("div.charts#live-charts");
+  const chartsTitle = h("h2#charts-title", {}, "Live signals");
+  const cameraButtons = h("div.row.camera-presets", { role: "group", "aria-label": "3D view camera" }, h("span.muted", {}, "View from:"),
+    [["oblique", "Overview"], ["front", "Front"], ["left", "Left side"], ["right", "Right side"], ["top", "Above"]].map(([preset, label]) =>
+      h("button.secondary", { type: "button", onclick: () => post("/viz/camera", { preset }).catch((error) => showError(error, "command")) }, label)));
   const runsHost = h("div#runs");
   const totalS = prescription.content.segments.reduce((s, x) => s + x.duration_s, 0);
 
@@ -69,11 +83,12 @@ export async function sessionPage(main, sessionId, cleanup) {
         h("div", {}, h("div.muted", {}, "Run"), runState)),
       h("div.row.run-controls", { role: "group", "aria-label": "Run control" }, controls.start, controls.pause, controls.resume, controls.stop, controls.reset)),
     h("div.console-grid", {},
-      h("section", { "aria-label": "3D view" }, h("h2", {}, "3D view"), vizHost, vizStatus),
+      h("section", { "aria-label": "3D view" }, h("h2", {}, "3D view"), vizHost, cameraButtons, vizStatus),
       h("section", { "aria-label": "Worker health" }, h("h2", {}, "Robot and worker health"), health)),
-    h("h2", {}, "Live signals"),
+    chartsTitle,
     chartsHost,
-    h("h2", {}, "Runs, events and exports"),
+    h("h2", {}, "Runs, events, notes and exports"),
+    h("button.secondary", { type: "button", onclick: () => post("/viz/live").then(() => { replaySeries = null; resetCharts("Live signals"); }).catch(showError) }, "3D view: back to live"),
     runsHost);
 
   // --- live charts -----------------------------------------------------------------------------
@@ -89,30 +104,66 @@ export async function sessionPage(main, sessionId, cleanup) {
     loads: new LiveChart(chartsHost, "Harness load and foot-plate vertical forces", "N", [
       { label: "harness", color: "#b00020", width: 3, digits: 0 }, { label: "right plate Fz", color: "#e06c00", digits: 0 }, { label: "left plate Fz", color: "#00798c", digits: 0 }]),
   };
+  charts.sliders.box.classList.add("engineering-only");
+  charts.forces.box.classList.add("engineering-only");
   const acceleration = new AccelerationEstimate();
   let framesThisSecond = 0;
   let frameRate = 0;
   let lastState = null;
   let activeRun = null; // declared with lastState: telemetry frames may arrive before the runs load
+  let pendingReview = null; // a fall or fault of this robot's last run not yet acknowledged
   const rateTimer = setInterval(() => { frameRate = framesThisSecond; framesThisSecond = 0; renderHealth(); }, 1000);
 
   function renderHealth() {
     const s = lastState;
     clear(health);
     if (!s) { health.append(metric("Telemetry", "waiting…")); return; }
+    const engineering = (el) => { el.classList.add("engineering-only"); return el; };
     health.append(
-      metric("Supervisor", s.state.toUpperCase(), ["estop", "fault"].includes(s.state)),
-      metric("Drives (HAL)", String(s.hal_state)),
-      metric("Tick compute time", fmt(s.tick_compute_us, "µs", 0), s.tick_compute_us > 800),
-      metric("Tick lateness", fmt(s.lateness_us, "µs", 0)),
-      metric("Deadline misses", `${s.deadline_misses} ticks`, s.late_streak > 0),
-      metric("Limit hits", `${s.limit_hits}`, s.limit_hits > 0),
-      metric("Tracking error", fmt(s.tracking_error_m * M_TO_MM, "mm", 2)),
+      metric("Robot", describeRobot(s).label, describeRobot(s).level === "bad"),
       metric("Harness load", fmt(s.harness_load_n, "N", 0)),
       metric("Emergency stop", s.estop_latched ? "LATCHED" : "clear", s.estop_latched),
-      metric("Last stop reason", s.stop_reason.replace(/_/g, " ")),
-      metric("Telemetry rate", `${frameRate} frames/s`, frameRate < 10),
-      metric("Worker time", fmt(s.time_s, "s", 1)));
+      metric("Last stop", words(s.stop_reason)),
+      engineering(metric("Drives (HAL)", String(s.hal_state))),
+      engineering(metric("Tick compute time", fmt(s.tick_compute_us, "µs", 0), s.tick_compute_us > 800)),
+      engineering(metric("Tick lateness", fmt(s.lateness_us, "µs", 0))),
+      engineering(metric("Deadline misses", `${s.deadline_misses} ticks`, s.late_streak > 0)),
+      engineering(metric("Limit hits", `${s.limit_hits}`, s.limit_hits > 0)),
+      engineering(metric("Tracking error", fmt(s.tracking_error_m * M_TO_MM, "mm", 2))),
+      engineering(metric("Telemetry rate", `${frameRate} frames/s`, frameRate < 10)),
+      engineering(metric("Worker clock", fmt(s.time_s, "s", 1))));
+  }
+
+  function plot(t, s, estimator) {
+    const pose = s.stance_pose;
+    const delivered = platformSpecificForce(pose.slice(3), estimator.update(t, pose.slice(0, 3)));
+    const cue = s.cue_specific_force_m_s2;
+    charts.acceleration.push(t, [cue[0], delivered[0], cue[1], delivered[1]]);
+    charts.sliders.push(t, s.slider_position_m.map((v) => v * M_TO_MM));
+    charts.forces.push(t, s.drive_force_n);
+    charts.cop.push(t, [s.plate_cop_m[0][0], s.plate_cop_m[0][1], s.plate_cop_m[1][0], s.plate_cop_m[1][1]].map((v) => v * M_TO_MM));
+    charts.loads.push(t, [s.harness_load_n, s.plate_force_z_n[0], s.plate_force_z_n[1]]);
+  }
+  function resetCharts(title) {
+    Object.values(charts).forEach((chart) => chart.reset());
+    chartsTitle.textContent = title;
+    chartsHost.dataset.source = replaySeries ? `replay-${replaySeries.run_id}` : "live";
+  }
+  // The replayed run's samples up to the replay's position, as the 3D view reaches them.
+  function followReplay(status) {
+    if (!replaySeries) return;
+    if (status.mode !== "replay" || status.replay_run_id !== replaySeries.run_id) {
+      replaySeries = null;
+      resetCharts("Live signals");
+      return;
+    }
+    const { time_s: times } = replaySeries;
+    while (replayShown < times.length && times[replayShown] <= status.replay_position_s + 1e-6) {
+      const i = replayShown;
+      plot(times[i], Object.fromEntries(Object.keys(replaySeries).filter((k) => Array.isArray(replaySeries[k])).map((k) => [k, replaySeries[k][i]])), replayAcceleration);
+      replayShown += 1;
+    }
+    chartsHost.dataset.replaySamples = String(replayShown);
   }
 
   function onFrame(frame) {
@@ -121,29 +172,28 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (!s) return;
     const robotStateChanged = !lastState || lastState.state !== s.state;
     lastState = s;
-    if (robotStateChanged) updateControls();
+    if (robotStateChanged) { updateControls(); window.dispatchEvent(new CustomEvent("ssp:robot-state", { detail: s })); }
     framesThisSecond += 1;
     chartsHost.dataset.samples = String(Number(chartsHost.dataset.samples || 0) + 1);
-    clear(supervisorState).append(badge(s.state), ` drives ${s.hal_state}`);
-    const t = s.time_s;
-    const pose = s.stance_pose;
-    const delivered = platformSpecificForce(pose.slice(3), acceleration.update(t, pose.slice(0, 3)));
-    const cue = s.cue_specific_force_m_s2;
-    charts.acceleration.push(t, [cue[0], delivered[0], cue[1], delivered[1]]);
-    charts.sliders.push(t, s.slider_position_m.map((v) => v * M_TO_MM));
-    charts.forces.push(t, s.drive_force_n);
-    charts.cop.push(t, [s.plate_cop_m[0][0], s.plate_cop_m[0][1], s.plate_cop_m[1][0], s.plate_cop_m[1][1]].map((v) => v * M_TO_MM));
-    charts.loads.push(t, [s.harness_load_n, s.plate_force_z_n[0], s.plate_force_z_n[1]]);
+    clear(supervisorState).append(badge(s.state), h("span.engineering-only", {}, ` drives ${s.hal_state}`));
+    if (chartOrigin === null) chartOrigin = s.time_s;
+    // Seconds since this page opened, not the worker's uptime; a replay owns the charts while it plays.
+    if (!replaySeries) plot(s.time_s - chartOrigin, s, acceleration);
     for (const event of frame.events || []) {
       if (event.kind === "fall") {
-        banner("fall", `FALL DETECTED at t = ${fmt(event.tick_time_s, "s", 2)} (${event.detector || "detector"}): the robot stops. Attend to the patient.`, { key: "fall", sticky: true });
+        const into = runStart && Number.isFinite(event.tick_time_s) ? ` ${fmt(event.tick_time_s - runStart.tick_time_s, "s", 1)} into the run` : "";
+        banner("fall", `FALL DETECTED${into} (${words(event.detector || "detector")}): the robot stops. Attend to the patient, then acknowledge the fall below before any new run.`, { key: "fall", sticky: true });
       }
     }
     if (frame.events && frame.events.length) refreshRuns();
-    if (s.state === "fault") banner("error", `Worker fault: ${s.stop_reason.replace(/_/g, " ")}. Check the robot, then Reset.`, { key: "fault", sticky: true });
     if (!lastRender || performance.now() - lastRender > 1000) { lastRender = performance.now(); renderHealth(); }
   }
   let lastRender = 0;
+  let chartOrigin = null;
+  let replaySeries = null; // the replayed run's signals (GET /viz/runs/{id}/series), shown instead of live ones
+  let replayShown = 0;
+  let replayAcceleration = null;
+  let runStart = null; // the active run's start event: times into the run come from the same worker clock
 
   // --- telemetry WebSocket (reconnects while the page is open) ---------------------------------
   let socket = null;
@@ -163,6 +213,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   // --- the 3D view -------------------------------------------------------------------------------
   const viz = await get("/viz").catch(() => ({ available: false, detail: "the 3D view status is unavailable" }));
   if (viz.available) {
+    post("/viz/figure", { patient_id: booking.patient_id }).catch(() => null); // the figure takes the patient's height
     vizHost.append(h("iframe.viz-frame#viz-frame", { src: "/api/v1/viz/view/", title: "Live 3D view of the twin robot and the patient", loading: "eager" }));
   } else {
     vizHost.append(h("p.panel", {}, `3D view unavailable: ${viz.detail}`));
@@ -176,51 +227,138 @@ export async function sessionPage(main, sessionId, cleanup) {
         : `3D view: live at ${st.rate_hz} Hz · ${st.frames_shown} frames shown`;
       vizStatus.dataset.frames = st.frames_shown;
       vizStatus.dataset.mode = st.mode;
+      followReplay(st);
     } catch (_) { /* the banner logic elsewhere reports API trouble */ }
   }, 1000);
 
-  // --- runs, events, exports -------------------------------------------------------------------
-  // The buttons follow the robot's true state, not only the run records: after an emergency stop or a
-  // fault, Start stays disabled until the robot is reset (the worker would refuse it anyway).
-  const STARTABLE_ROBOT_STATES = ["idle", "ready", "stopped"];
+  // --- runs, events, exports: each run's panel is built once and updated in place, so a choice made in it
+  // (export format, open details, notes being typed) survives the refresh every 3 s -------------------------
+  const panels = new Map();
+  const acknowledgePanel = h("div#acknowledge-panel", { hidden: true, role: "alert" });
+  runsHost.before(acknowledgePanel);
   function updateControls() {
     const robotState = lastState ? lastState.state : null;
     const robotBlocks = robotState !== null && !STARTABLE_ROBOT_STATES.includes(robotState);
-    controls.start.disabled = Boolean(activeRun) || robotBlocks;
-    controls.start.title = robotBlocks && !activeRun ? `The robot is ${robotState.toUpperCase()}: reset it first.` : "";
+    controls.start.disabled = Boolean(activeRun) || robotBlocks || Boolean(pendingReview);
+    controls.start.title = pendingReview ? "Acknowledge the last stop first (below)."
+      : robotBlocks && !activeRun ? `The robot is ${words(robotState).toUpperCase()}: reset it first.` : "";
     controls.pause.disabled = !activeRun || activeRun.state !== "running";
     controls.resume.disabled = !activeRun || activeRun.state !== "paused";
     controls.stop.disabled = !activeRun;
   }
+  function outcomeOf(run) { return run.state === "ended" ? run.outcome || "ended" : run.state; }
+  function eventsTable(run, events) {
+    const start = events.find((e) => e.kind === "start");
+    if (!events.length) return h("p.muted", {}, "No events.");
+    return table(["Event", "Time into the run", "Clock time", "What happened"], events.map((e) => {
+      const into = sessionTime(e, run, start);
+      return h(`tr${CLINICAL_EVENTS.has(e.kind) ? "" : ".engineering-only"}`, { dataset: { kind: e.kind } },
+        h("td", {}, h("span.event-kind", {}, eventTitle(e))),
+        h("td.num", {}, into === null ? "—" : fmt(into, "s", 1)),
+        h("td", {}, new Date(e.utc).toLocaleTimeString()),
+        h("td", {}, detailWords({ ...(e.detector && e.detector !== "console" ? { detector: e.detector } : {}), ...e.details }) || "—",
+          h("details.raw", {}, h("summary", {}, "raw details"), h("pre", {}, JSON.stringify({ ...e, details: e.details }, null, 1)))));
+    }));
+  }
+  function notesForm(run) {
+    const areas = Object.fromEntries([["subjective", "S: subjective (what the patient reports)"], ["objective", "O: objective (observed, measured)"],
+      ["assessment", "A: assessment"], ["plan", "P: plan (next session)"]].map(([name, label]) => [name, [label, h("textarea", { rows: 2, "data-field": name })]]));
+    const status = h("span.muted", { role: "status" });
+    const form = h("form.soap", { novalidate: true, onsubmit: async (event) => {
+      event.preventDefault();
+      try {
+        await put(`/runs/${run.id}/notes`, Object.fromEntries(Object.entries(areas).map(([name, [, area]]) => [name, area.value])));
+        clearErrors(`notes-${run.id}`);
+        status.textContent = `Notes saved at ${new Date().toLocaleTimeString()}.`;
+      } catch (error) { showError(error, `notes-${run.id}`); }
+    } }, Object.values(areas).map(([label, area]) => h("label", {}, label, area)),
+    h("div.row", {}, h("button.secondary", { type: "submit" }, `Save notes of run ${run.id}`), status));
+    form.load = (notes) => { for (const [name, [, area]] of Object.entries(areas)) if (document.activeElement !== area) area.value = notes[name] || ""; };
+    return form;
+  }
+  function runPanel(run) {
+    const format = h("select", { "aria-label": `Export format for run ${run.id}` }, EXPORT_FORMATS.map(([v, t]) => h("option", { value: v }, t)));
+    const link = h("a.button.primary", { href: `/api/v1/sessions/${sessionId}/export?format=csv&run_id=${run.id}`, download: "", dataset: { run: run.id } }, `Export run ${run.id} log`);
+    format.addEventListener("change", () => { link.href = `/api/v1/sessions/${sessionId}/export?format=${format.value}&run_id=${run.id}`; });
+    const parts = {
+      title: h("h3.grow"), state: h("span"), summary: h("p"), events: h("div"), notes: notesForm(run),
+      replay: h("button.secondary", { type: "button", hidden: true, onclick: () => replay(run.id) }, `Replay run ${run.id} in 3D`),
+      report: h("a.button", { href: `/api/v1/runs/${run.id}/report.pdf`, target: "_blank", hidden: true }, `PDF report of run ${run.id}`),
+      eventsKey: "",
+    };
+    parts.panel = h("div.panel", { dataset: { runId: run.id } },
+      h("div.row", {}, parts.title, parts.state), parts.summary, parts.events,
+      h("details.notes", {}, h("summary", {}, "Therapist notes (SOAP)"), parts.notes),
+      h("div.row", {}, h("label", {}, "Format ", format), link, parts.replay, parts.report));
+    return parts;
+  }
+  async function updatePanel(parts, run) {
+    const [events, review] = await Promise.all([get(`/runs/${run.id}/events`), get(`/runs/${run.id}/review`).catch(() => null)]);
+    parts.title.textContent = `Run ${run.id} · started ${fmtDateTime(run.started_at)}`;
+    clear(parts.state).append(badge(outcomeOf(run)));
+    parts.summary.textContent = `${OUTCOME_WORDS[outcomeOf(run)] || words(outcomeOf(run))} · ${run.sample_count} samples recorded${run.ended_at ? `, ended ${fmtDateTime(run.ended_at)}` : ""}.`;
+    const eventsKey = events.map((e) => e.id).join(",");
+    if (eventsKey !== parts.eventsKey) { clear(parts.events).append(eventsTable(run, events)); parts.eventsKey = eventsKey; }
+    if (review) parts.notes.load(review.notes);
+    parts.replay.hidden = run.state !== "ended";
+    parts.report.hidden = run.state !== "ended";
+    return events;
+  }
+  function showPending(review) {
+    pendingReview = review;
+    acknowledgePanel.hidden = !review;
+    acknowledgePanel.className = review && review.outcome === "fall" ? "alert-panel fall" : "alert-panel";
+    clear(acknowledgePanel);
+    if (!review) return;
+    const what = OUTCOME_WORDS[review.outcome] || words(review.outcome);
+    acknowledgePanel.append(h("h2", {}, `Run ${review.run_id} ended: ${what}`),
+      h("p", {}, `The robot ${booking.robot} starts again only after you acknowledge this ${words(review.outcome)}. The acknowledgement is recorded with your name in the run's events.`),
+      h("button.danger#acknowledge-button", { type: "button", onclick: () => acknowledge(review) }, `Acknowledge the ${words(review.outcome)}`));
+  }
+  async function acknowledge(review) {
+    const ok = await confirmDialog({ title: `Acknowledge the ${words(review.outcome)} of run ${review.run_id}?`,
+      body: "Confirm each point. A new run still needs the start checklist.", ok: "Acknowledge", checklist: ACKNOWLEDGEMENT_CHECKS });
+    if (!ok) return;
+    try {
+      await post(`/runs/${review.run_id}/acknowledge`, { note: ACKNOWLEDGEMENT_CHECKS.join(" ") });
+      clearErrors("command");
+      banner("info", `The ${words(review.outcome)} of run ${review.run_id} is acknowledged.`);
+    } catch (error) { showError(error, "command"); }
+    await refreshRuns();
+  }
   async function refreshRuns() {
-    const runs = await get(`/sessions/${sessionId}/runs`);
+    const [runs, pending] = await Promise.all([get(`/sessions/${sessionId}/runs`), get(`/reviews/pending${query({ robot: booking.robot })}`).catch(() => null)]);
     activeRun = runs.find((r) => r.state === "running" || r.state === "paused") || null;
     const last = runs[runs.length - 1];
-    const shown = last ? (last.state === "ended" ? (last.outcome || "ended") : last.state) : "not started";
+    const shown = last ? outcomeOf(last) : "not started";
     runState.className = `badge big-state ${shown}`;
-    runState.textContent = shown.replace(/_/g, " ");
+    runState.textContent = words(shown);
     runState.dataset.state = shown;
+    showPending(pending);
     updateControls();
-    const blocks = await Promise.all(runs.slice().reverse().map(async (run) => {
-      const events = await get(`/runs/${run.id}/events`);
-      const format = h("select", { "aria-label": `Export format for run ${run.id}` }, EXPORT_FORMATS.map(([v, t]) => h("option", { value: v }, t)));
-      const link = h("a.button.primary", { href: `/api/v1/sessions/${sessionId}/export?format=csv&run_id=${run.id}`, download: "", dataset: { run: run.id } }, `Export run ${run.id} log`);
-      format.addEventListener("change", () => { link.href = `/api/v1/sessions/${sessionId}/export?format=${format.value}&run_id=${run.id}`; });
-      return h("div.panel", { dataset: { runId: run.id } },
-        h("div.row", {}, h("h3.grow", {}, `Run ${run.id} · started ${fmtDateTime(run.started_at)}`), badge(run.state === "ended" ? run.outcome || "ended" : run.state)),
-        h("p", {}, `${run.sample_count} samples recorded${run.ended_at ? `, ended ${fmtDateTime(run.ended_at)}` : ""}.`),
-        events.length ? table(["Event", "Tick time", "UTC", "Detector", "Details"], events.map((e) => h("tr", { dataset: { kind: e.kind } },
-          h("td", {}, h("span.event-kind", {}, e.kind.replace(/_/g, " "))), h("td.num", {}, fmt(e.tick_time_s, "s", 3)),
-          h("td", {}, new Date(e.utc).toISOString().replace("T", " ").slice(0, 23)), h("td", {}, e.detector || "—"),
-          h("td.details", {}, Object.keys(e.details || {}).length ? JSON.stringify(e.details).replace(/,"/g, ", \"") : "—")))) : h("p.muted", {}, "No events."),
-        h("div.row", {}, h("label", {}, "Format ", format), link,
-          run.state === "ended" ? h("button.secondary", { type: "button", onclick: () => replay(run.id) }, `Replay run ${run.id} in 3D`) : null));
-    }));
-    clear(runsHost).append(...(blocks.length ? blocks : [h("p.muted", {}, "No run yet.")]),
-      h("button.secondary", { type: "button", onclick: () => post("/viz/live").catch(showError) }, "3D view: back to live"));
+    if (!runs.length && !panels.size) clear(runsHost).append(h("p.muted", {}, "No run yet."));
+    for (const run of runs) {
+      let parts = panels.get(run.id);
+      if (!parts) {
+        if (!panels.size) clear(runsHost);
+        parts = runPanel(run);
+        panels.set(run.id, parts);
+        runsHost.prepend(parts.panel); // newest first
+      }
+      const events = await updatePanel(parts, run);
+      if (run === activeRun) runStart = events.find((e) => e.kind === "start") || null;
+    }
   }
   async function replay(runId) {
-    try { await post("/viz/replay", { run_id: runId }); banner("info", `Replaying run ${runId} in the 3D view.`); } catch (error) { showError(error); }
+    try {
+      await post("/viz/replay", { run_id: runId });
+      replaySeries = await get(`/viz/runs/${runId}/series?points=4000`);
+      replayShown = 0;
+      replayAcceleration = new AccelerationEstimate();
+      resetCharts(`Signals of run ${runId} (replay, time into the run)`);
+      clearErrors("command");
+      banner("info", `Replaying run ${runId} in the 3D view and the charts.`);
+    } catch (error) { showError(error, "command"); }
   }
 
   // --- run control -------------------------------------------------------------------------------
@@ -229,7 +367,10 @@ export async function sessionPage(main, sessionId, cleanup) {
       await post(`/sessions/${sessionId}/${name}`);
     } catch (error) {
       showError(error, "command");
+      await refreshRuns();
+      return;
     }
+    clearErrors("command");
     await refreshRuns();
   }
   controls.start.addEventListener("click", async () => {
@@ -250,7 +391,11 @@ export async function sessionPage(main, sessionId, cleanup) {
   });
   controls.stop.addEventListener("click", () => command("stop"));
   controls.reset.addEventListener("click", async () => {
-    try { await post("/robot/reset"); banner("info", "Reset sent: the robot is ready once it shows idle."); } catch (error) { showError(error); }
+    try {
+      await post("/robot/reset");
+      clearErrors("command");
+      banner("info", "Reset sent: the robot is ready once it shows READY. A reset never starts motion.");
+    } catch (error) { showError(error, "command"); }
   });
   const onEstop = () => { setTimeout(refreshRuns, 600); setTimeout(refreshRuns, 2500); };
   window.addEventListener("ssp:estop", onEstop);

@@ -1,12 +1,25 @@
 // Login, patients, patient profile, prescription editor, schedule week view and session history.
 import { get, patch, post, put, query } from "./api.js";
+import { protocolByKey } from "./protocols.js";
 import { staticChart } from "./charts.js";
+import { OUTCOME_WORDS, rejectionWords, words } from "./language.js";
 import {
-  M_TO_MM, RAD_TO_DEG, badge, banner, clear, field, fmt, fmtDateTime, fmtTime, h,
+  M_TO_MM, RAD_TO_DEG, badge, banner, clear, clearErrors, confirmDialog, field, fmt, fmtDateTime, fmtTime, h,
   showError, showFieldErrors, table,
 } from "./ui.js";
 
-const go = (hash) => { location.hash = hash; };
+// To a page; the same page again is rendered afresh (a saved record shows its new state, e.g. its version).
+const go = (hash) => {
+  if (location.hash === hash) window.dispatchEvent(new HashChangeEvent("hashchange"));
+  else location.hash = hash;
+};
+// A refused form: each refusal beside its field, in the field's units; the rest in one banner.
+function showRefusal(form, error) {
+  const unplaced = error.status === 422 ? showFieldErrors(form, error.fieldItems) : [];
+  if (error.status !== 422) showError(error, "form");
+  else if (unplaced.length) banner("error", `Please check: ${unplaced.join(" ")}`, { key: "form" });
+  else clearErrors("form");
+}
 
 // --- login ---------------------------------------------------------------------------------------
 export function loginPage(main, { onLogin }) {
@@ -17,6 +30,7 @@ export function loginPage(main, { onLogin }) {
       event.preventDefault();
       try {
         const result = await post("/auth/login", { username: username.value, password: password.value });
+        clearErrors("login");
         onLogin(result.user);
       } catch (error) {
         if (error.status === 422) showFieldErrors(form, error.fieldErrors);
@@ -33,62 +47,78 @@ export function loginPage(main, { onLogin }) {
 }
 
 // --- patients ------------------------------------------------------------------------------------
+const FAULTED_OUTCOMES = new Set(["fall", "fault", "limit_hit", "emergency_stop"]);
 const SEXES = ["female", "male", "other", "unknown"];
 const SIDES = ["none", "left", "right", "both"];
 
 export async function patientsPage(main) {
   const search = h("input", { type: "search", placeholder: "Name or record number", "aria-label": "Search patients" });
+  const archived = h("input", { type: "checkbox", id: "show-archived" });
   const results = h("div");
   const load = async () => {
-    const patients = await get(`/patients${query({ search: search.value.trim() })}`);
+    const patients = await get(`/patients${query({ search: search.value.trim(), include_archived: archived.checked || undefined })}`);
     clear(results).append(patients.length ? table(
       ["Record number", "Name", "Date of birth", "Diagnosis", ""],
       patients.map((p) => h("tr.clickable", {},
-        h("td", {}, p.identifier), h("td", {}, p.name), h("td", {}, p.date_of_birth), h("td", {}, p.diagnosis || "—"),
+        h("td", {}, p.identifier), h("td", {}, p.name, p.archived_at ? h("span.badge.cancelled", {}, " archived") : null),
+        h("td", {}, p.date_of_birth), h("td", {}, p.diagnosis || "—"),
         h("td", {}, h("a.button", { href: `#/patients/${p.id}` }, "Open profile")))),
     ) : h("p.muted", {}, "No patient matches."));
   };
   let timer = null;
   search.addEventListener("input", () => { clearTimeout(timer); timer = setTimeout(() => load().catch(showError), 250); });
+  archived.addEventListener("change", () => load().catch(showError));
   main.append(h("h1", {}, "Patients"),
-    h("div.row", {}, h("div.grow", {}, field("Search", search)),
+    h("div.row", {}, h("div.grow", {}, field("Search (accents and case do not matter)", search)),
+      h("label.inline-check", { for: "show-archived" }, archived, " Show archived records"),
       h("button.primary", { type: "button", onclick: () => go("#/patients/new") }, "New patient")),
     results);
   search.focus();
   await load();
 }
 
-export function newPatientPage(main) {
+export function newPatientPage(main) { return patientFormPage(main, null); }
+
+// Create a patient, or edit one (`patient` given). Sex has no default: the clinician chooses it.
+export function patientFormPage(main, patient) {
   const input = (name, attrs = {}) => h("input", { name, "data-field": name, ...attrs });
-  const select = (name, options) => h("select", { name, "data-field": name }, options.map((o) => h("option", { value: o }, o)));
+  const select = (name, options, { placeholder } = {}) => h("select", { name, "data-field": name },
+    placeholder ? h("option", { value: "", disabled: true, selected: true }, placeholder) : null,
+    options.map((o) => h("option", { value: o }, words(o))));
   const f = {
     identifier: input("identifier", { required: true }),
     name: input("name", { required: true }),
     date_of_birth: input("date_of_birth", { type: "date", required: true }),
-    sex: select("sex", SEXES),
-    height_m: input("height_m", { type: "number", step: "1", min: "50", max: "250", required: true }),
+    sex: select("sex", SEXES, { placeholder: "Choose…" }),
+    // Entered in cm; the API takes metres (data-scale: API value × 100 = value shown, for its messages).
+    height_m: input("height_m", { type: "number", step: "1", min: "50", max: "250", required: true, "data-scale": "100" }),
     body_mass_kg: input("body_mass_kg", { type: "number", step: "0.1", min: "10", max: "250", required: true }),
     diagnosis: input("diagnosis"),
     affected_side: select("affected_side", SIDES),
     contraindications: h("textarea", { name: "contraindications", "data-field": "contraindications", rows: 2 }),
-    notes: h("textarea", { name: "notes", "data-field": "notes", rows: 2 }),
+    notes: h("textarea", { name: "notes", "data-field": "notes", rows: 3 }),
   };
+  if (patient) {
+    for (const name of ["identifier", "name", "date_of_birth", "sex", "body_mass_kg", "diagnosis", "affected_side", "contraindications", "notes"]) f[name].value = patient[name];
+    f.height_m.value = Math.round(patient.height_m * 100);
+  }
   const form = h("form.panel", {
     novalidate: true,
     onsubmit: async (event) => {
       event.preventDefault();
       const body = {
-        identifier: f.identifier.value, name: f.name.value, date_of_birth: f.date_of_birth.value, sex: f.sex.value,
-        height_m: Number(f.height_m.value) / 100, body_mass_kg: Number(f.body_mass_kg.value), diagnosis: f.diagnosis.value,
+        identifier: f.identifier.value, name: f.name.value, date_of_birth: f.date_of_birth.value, sex: f.sex.value || undefined,
+        height_m: f.height_m.value === "" ? undefined : Number(f.height_m.value) / 100,
+        body_mass_kg: f.body_mass_kg.value === "" ? undefined : Number(f.body_mass_kg.value), diagnosis: f.diagnosis.value,
         affected_side: f.affected_side.value, contraindications: f.contraindications.value, notes: f.notes.value,
       };
       try {
-        const patient = await post("/patients", body);
-        banner("info", `Patient ${patient.name} created.`);
-        go(`#/patients/${patient.id}`);
+        const saved = patient ? await patch(`/patients/${patient.id}`, body) : await post("/patients", body);
+        clearErrors("form");
+        banner("info", `Patient ${saved.name} ${patient ? "saved" : "created"}.`);
+        go(`#/patients/${saved.id}`);
       } catch (error) {
-        const unplaced = error.status === 422 ? showFieldErrors(form, error.fieldErrors) : [];
-        if (error.status !== 422 || unplaced.length) showError(error, "form");
+        showRefusal(form, error);
       }
     },
   },
@@ -97,9 +127,14 @@ export function newPatientPage(main) {
     field("Height", f.height_m, { unit: "cm" }), field("Body mass", f.body_mass_kg, { unit: "kg" }),
     field("Diagnosis", f.diagnosis), field("Affected side", f.affected_side)),
   field("Contraindications", f.contraindications), field("Notes", f.notes),
-  h("div.row", {}, h("button.primary", { type: "submit" }, "Create patient"), h("a.button", { href: "#/patients" }, "Cancel")));
-  main.append(h("h1", {}, "New patient"), form);
+  h("div.row", {}, h("button.primary", { type: "submit" }, patient ? "Save patient" : "Create patient"),
+    h("a.button", { href: patient ? `#/patients/${patient.id}` : "#/patients" }, "Cancel")));
+  main.append(h("h1", {}, patient ? `Edit patient: ${patient.name}` : "New patient"), form);
   f.identifier.focus();
+}
+
+export async function editPatientPage(main, patientId) {
+  patientFormPage(main, await get(`/patients/${patientId}`));
 }
 
 export async function patientPage(main, patientId) {
@@ -115,7 +150,13 @@ export async function patientPage(main, patientId) {
       metric("Date of birth", patient.date_of_birth), metric("Sex", patient.sex),
       metric("Height", fmt(patient.height_m * 100, "cm", 0)), metric("Body mass", fmt(patient.body_mass_kg, "kg", 1)),
       metric("Diagnosis", patient.diagnosis || "—"), metric("Affected side", patient.affected_side)),
+    patient.archived_at ? h("p.verdict.bad", { role: "status" }, `Archived on ${fmtDateTime(patient.archived_at)}: the record is kept, but it is left out of the lists.`) : "",
     h("p", {}, h("strong", {}, "Contraindications: "), patient.contraindications || "none recorded"),
+    h("div.panel#patient-notes", {}, h("strong", {}, "Notes: "), patient.notes ? h("span.pre-line", {}, patient.notes) : h("span.muted", {}, "none")),
+    h("div.row", {}, h("a.button", { href: `#/patients/${patientId}/edit` }, "Edit patient"),
+      h("button.secondary", { type: "button", onclick: () => archivePatient(patient) }, patient.archived_at ? "Restore from archive" : "Archive patient"),
+      progressReportLink(patientId),
+      h("a.button", { href: `#/protocols?patient=${patientId}` }, "Start from a protocol")),
     h("h2", {}, "Prescriptions"),
     h("div.row", {}, h("a.button.primary", { href: `#/prescriptions/new?patient=${patientId}` }, "New prescription"),
       h("a.button", { href: `#/schedule?patient=${patientId}` }, "Schedule a session")),
@@ -128,25 +169,63 @@ export async function patientPage(main, patientId) {
   main.append(h("h2", {}, "Balance trend"), h("p", {}, `${trend.length} recorded run(s), ${falls} fall(s).`));
   const measured = trend.filter((run) => run.sway);
   if (measured.length) {
-    const charts = h("div.charts");
+    // One measure and one unit per chart, by date; runs that ended in a fall, fault or stop are marked.
+    const charts = h("div.charts#balance-trend");
     main.append(charts);
-    const x = measured.map((_, i) => i + 1);
-    staticChart(charts, "COP sway: RMS distance and 95 % ellipse", "mm / cm²", x,
-      [measured.map((r) => r.sway.rms_distance_m * M_TO_MM), measured.map((r) => r.sway.ellipse_area_95_m2 * 1e4)],
-      [{ label: "RMS distance (mm)" }, { label: "95 % ellipse area (cm²)" }], { xLabel: "run number" });
-    staticChart(charts, "COP mean velocity and falls", "mm/s / count", x,
-      [measured.map((r) => r.sway.mean_velocity_m_s * M_TO_MM), measured.map((r) => r.falls)],
-      [{ label: "Mean COP velocity (mm/s)" }, { label: "Falls (count)" }], { xLabel: "run number" });
+    const x = measured.map((r) => new Date(r.started_at).getTime() / 1000);
+    const faulted = measured.map((r) => FAULTED_OUTCOMES.has(r.outcome));
+    const trendChart = (title, unit, values) => staticChart(charts, title, unit, x,
+      [values, values.map((v, i) => (faulted[i] ? v : null))],
+      [{ label: title, points: 6, spanGaps: true }, { label: "ended by a fall, fault or stop", color: "#b00020", points: 10, pointsOnly: true }],
+      { xLabel: "date", xTime: true, yRange: (u, min, max) => [0, max > 0 ? max * 1.15 : 1] });
+    trendChart("RMS distance of the COP", "mm", measured.map((r) => r.sway.rms_distance_m * M_TO_MM));
+    trendChart("Mean COP velocity", "mm/s", measured.map((r) => r.sway.mean_velocity_m_s * M_TO_MM));
+    trendChart("95 % ellipse area", "cm²", measured.map((r) => r.sway.ellipse_area_95_m2 * 1e4));
+    trendChart("Falls", "count", measured.map((r) => r.falls));
   } else {
     main.append(h("p.muted", {}, "No run with force-plate data yet: the trend appears after the first session."));
   }
   main.append(h("h2", {}, "Session history"), await sessionsTable(bookings.slice().reverse()));
 }
 
+// The progress report over a period (both dates optional, inclusive).
+function progressReportLink(patientId) {
+  const from = h("input", { type: "date", "aria-label": "Progress report from" });
+  const to = h("input", { type: "date", "aria-label": "Progress report to" });
+  const link = h("a.button", { target: "_blank" }, "Progress report (PDF)");
+  const update = () => { link.href = `/api/v1/patients/${patientId}/progress.pdf${query({ from: from.value, to: to.value })}`; };
+  from.addEventListener("change", update);
+  to.addEventListener("change", update);
+  update();
+  return h("span.row.progress-report", {}, link, h("label", {}, "from ", from), h("label", {}, "to ", to));
+}
+
+async function archivePatient(patient) {
+  const archiving = !patient.archived_at;
+  const ok = await confirmDialog({
+    title: archiving ? `Archive ${patient.name}?` : `Restore ${patient.name}?`,
+    body: archiving ? "The record, its prescriptions and runs are kept; the patient leaves the lists and the booking form." : "The patient appears in the lists again.",
+    ok: archiving ? "Archive" : "Restore",
+  });
+  if (!ok) return;
+  try {
+    await patch(`/patients/${patient.id}`, { archived: archiving });
+    clearErrors("form");
+    banner("info", archiving ? `${patient.name} archived.` : `${patient.name} restored.`);
+    go(`#/patients/${patient.id}`);
+  } catch (error) { showError(error, "form"); }
+}
+
 function metric(label, value, bad = false) {
   return h(`div.metric${bad ? ".bad" : ""}`, {}, h("div.label", {}, label), h("div.value", {}, value));
 }
 export { metric };
+
+// The run's PDF report (server/reports), once it has ended.
+function reportLink(run) {
+  if (!run || run.state !== "ended") return null;
+  return h("a.button", { href: `/api/v1/runs/${run.id}/report.pdf`, target: "_blank", title: `Outcome: ${OUTCOME_WORDS[run.outcome] || words(run.outcome)}` }, `PDF report (run ${run.id})`);
+}
 
 async function sessionsTable(bookings) {
   if (!bookings.length) return h("p.muted", {}, "No session yet.");
@@ -156,49 +235,124 @@ async function sessionsTable(bookings) {
     return h("tr", {},
       h("td", {}, fmtDateTime(b.start)), h("td", {}, badge(b.status)), h("td.num", {}, runs.length),
       h("td", {}, last ? badge(last.outcome || last.state) : "—"),
-      h("td", {}, h("a.button", { href: `#/session/${b.id}` }, "Open")));
+      h("td", {}, h("a.button", { href: `#/session/${b.id}` }, "Open"), " ", reportLink(last)));
   }));
   return table(["Booked for", "Booking", "Runs", "Last outcome", ""], rows);
 }
 
 // --- prescription editor -------------------------------------------------------------------------
-// Cue fields by kind: [name, label, unit shown, factor from the API's SI value to the unit shown, default].
+// Every cue kind of core.cues has a form. Fields: [name, label, unit shown, factor from the API's SI value
+// to the unit shown, default (null: optional, left out when empty)]. "amplitude", "initial" and "final"
+// take the axis's unit (m/s² for x, y, z; °/s for roll, pitch, yaw).
 const AXES = ["x", "y", "z", "roll", "pitch", "yaw"];
+const AXIS_WORDS = { x: "x (forward–back)", y: "y (side to side)", z: "z (up–down)", roll: "roll", pitch: "pitch", yaw: "yaw" };
 const ROTATION = new Set(["roll", "pitch", "yaw"]);
+const AXIS_VALUES = new Set(["amplitude", "initial", "final"]);
 const CUE_FIELDS = {
   sine: [["amplitude", "Amplitude", null, null, 0.5], ["frequency_hz", "Frequency", "Hz", 1, 0.5]],
   square_wave: [["amplitude", "Amplitude", null, null, 0.5], ["period_s", "Period", "s", 1, 4], ["duty", "Duty cycle", "fraction", 1, 0.5]],
+  step: [["initial", "Level before the step", null, null, 0], ["final", "Level after the step", null, null, 0.5],
+    ["step_time_s", "Step at", "s", 1, 2], ["end_time_s", "Back to the first level at (optional)", "s", 1, null]],
+  multisine: [],
   perturbations: [["translation_m_s2", "Translation pulse", "m/s²", 1, 1.0], ["tilt_rate_rad_s", "Tilt rate pulse", "°/s", RAD_TO_DEG, 0],
     ["pulse_duration_s", "Pulse duration", "s", 1, 0.5], ["interval_min_s", "Shortest interval", "s", 1, 3], ["interval_max_s", "Longest interval", "s", 1, 8]],
   gait: [["cadence_steps_per_min", "Cadence", "steps/min", 1, 90], ["lateral_amplitude_m_s2", "Lateral amplitude", "m/s²", 1, 0.5],
     ["forward_amplitude_m_s2", "Forward amplitude", "m/s²", 1, 0.3], ["vertical_amplitude_m_s2", "Vertical amplitude", "m/s²", 1, 0]],
+  csv_replay: [],
 };
-const AXIS_KINDS = new Set(["sine", "square_wave"]);
+const KIND_WORDS = { sine: "sine", square_wave: "square wave", step: "step", multisine: "sum of sines (multisine)",
+  perturbations: "random perturbations", gait: "gait-like", csv_replay: "recorded cue (CSV upload)" };
+const AXIS_KINDS = new Set(["sine", "square_wave", "step"]);
+const axisUnit = (axis) => (ROTATION.has(axis) ? ["rad_s", "°/s", RAD_TO_DEG] : ["m_s2", "m/s²", 1]);
+const CSV_COLUMNS = "time_s, specific_force_x_m_s2, specific_force_y_m_s2, specific_force_z_m_s2 (optional: angular_velocity_x_rad_s, _y_, _z_)";
+
+function numberInput(fieldPath, value, scale, unit) {
+  return h("input", { type: "number", step: "any", value: value === null || value === undefined ? "" : +(value * scale).toFixed(4),
+    "data-field": fieldPath, "data-scale": String(scale), "data-unit": unit });
+}
+
+// Multisine: a list of sine components, each on its own axis.
+function componentsEditor(prefix, components) {
+  const host = h("div.components");
+  let rows = [];
+  const render = (list) => {
+    clear(host);
+    rows = list.map((component, k) => {
+      const path = `${prefix}.cue.components[${k}]`;
+      const axis = h("select", { "data-field": `${path}.axis` }, AXES.map((a) => h("option", { value: a, selected: a === (component.axis || "y") }, AXIS_WORDS[a])));
+      const [unitKey, unit, scale] = axisUnit(axis.value);
+      const amplitude = numberInput(`${path}.amplitude_${unitKey}`, component[`amplitude_${unitKey}`] ?? 0.3, scale, unit);
+      const frequency = numberInput(`${path}.frequency_hz`, component.frequency_hz ?? 0.3 * (k + 1), 1, "Hz");
+      const phase = numberInput(`${path}.phase_rad`, component.phase_rad ?? 0, RAD_TO_DEG, "°");
+      axis.addEventListener("change", () => render(read()));
+      const row = h("div.form-grid.component", {},
+        field(`Component ${k + 1}: axis`, axis), field(`Component ${k + 1}: amplitude`, amplitude, { unit }),
+        field(`Component ${k + 1}: frequency`, frequency, { unit: "Hz" }), field(`Component ${k + 1}: phase`, phase, { unit: "°" }),
+        list.length > 1 ? h("div.field", {}, h("button.secondary", { type: "button", onclick: () => { const next = read(); next.splice(k, 1); render(next); } }, `Remove component ${k + 1}`)) : null);
+      row.read = () => {
+        const [key, , factor] = axisUnit(axis.value);
+        const spec = { axis: axis.value, [`amplitude_${key}`]: Number(amplitude.value) / factor, frequency_hz: Number(frequency.value) };
+        if (phase.value !== "" && Number(phase.value) !== 0) spec.phase_rad = Number(phase.value) / RAD_TO_DEG;
+        return spec;
+      };
+      return row;
+    });
+    host.append(...rows, h("button.secondary", { type: "button", onclick: () => { const next = read(); next.push({ axis: "y" }); render(next); } }, "Add a component"));
+  };
+  const read = () => rows.map((row) => row.read());
+  render(components && components.length ? components : [{ axis: "y", amplitude_m_s2: 0.3, frequency_hz: 0.2 }, { axis: "y", amplitude_m_s2: 0.2, frequency_hz: 0.45 }]);
+  host.read = read;
+  return host;
+}
+
+// A recorded cue: the CSV file is read in the browser and sent as text; core.cues checks it.
+function csvEditor(prefix, csv) {
+  let text = csv || "";
+  const summary = h("p.hint", { role: "status" });
+  const describe = () => {
+    if (!text) { summary.textContent = `No file yet. Columns: ${CSV_COLUMNS}.`; return; }
+    const lines = text.trim().split(/\r?\n/);
+    summary.textContent = `${lines.length - 1} rows loaded; columns: ${lines[0]}.`;
+  };
+  const upload = h("input", { type: "file", accept: ".csv,text/csv", "data-field": `${prefix}.cue.csv`, "data-label": "Recorded cue (CSV)" });
+  upload.addEventListener("change", async () => { text = upload.files[0] ? await upload.files[0].text() : text; describe(); });
+  describe();
+  const host = h("div", {}, field("Recorded cue (CSV file)", upload, { hint: `Columns: ${CSV_COLUMNS}. Times in s, from 0, increasing.` }), summary);
+  host.read = () => text;
+  return host;
+}
 
 function segmentEditor(index, segment, onRemove) {
   const cue = segment.cue || { kind: "sine", axis: "y", amplitude_m_s2: 0.5, frequency_hz: 0.5 };
   const prefix = `segments[${index}]`;
-  const kind = h("select", { "data-field": `${prefix}.cue.kind` }, Object.keys(CUE_FIELDS).map((k) => h("option", { value: k, selected: k === cue.kind }, k.replace("_", " "))));
-  const axis = h("select", { "data-field": `${prefix}.cue.axis` }, AXES.map((a) => h("option", { value: a, selected: a === cue.axis }, a)));
+  const kind = h("select", { "data-field": `${prefix}.cue.kind` }, Object.keys(CUE_FIELDS).map((k) => h("option", { value: k, selected: k === cue.kind }, KIND_WORDS[k])));
+  const axis = h("select", { "data-field": `${prefix}.cue.axis` }, AXES.map((a) => h("option", { value: a, selected: a === (cue.axis || "y") }, AXIS_WORDS[a])));
   const duration = h("input", { type: "number", step: "1", min: "1", value: segment.duration_s ?? 60, "data-field": `${prefix}.duration_s` });
-  const tilt = h("input", { type: "number", step: "0.5", min: "0", placeholder: "robot limit", "data-field": `${prefix}.limits.tilt_max_rad`,
-    value: segment.limits && segment.limits.tilt_max_rad ? (segment.limits.tilt_max_rad * RAD_TO_DEG).toFixed(1) : "" });
+  const tilt = h("input", { type: "number", step: "0.5", min: "0", placeholder: "robot's", "data-field": `${prefix}.limits.tilt_max_rad`,
+    "data-scale": String(RAD_TO_DEG), value: segment.limits && segment.limits.tilt_max_rad ? (segment.limits.tilt_max_rad * RAD_TO_DEG).toFixed(1) : "" });
   const cueFields = h("div.form-grid");
   let inputs = {};
+  let special = null;
   const renderCueFields = (source) => {
     clear(cueFields);
     inputs = {};
-    const rotational = ROTATION.has(axis.value);
+    special = null;
+    const [unitKey, axisUnitShown, axisScale] = axisUnit(axis.value);
     for (const [name, label, unit, factor, fallback] of CUE_FIELDS[kind.value]) {
-      const apiName = name === "amplitude" ? (rotational ? "amplitude_rad_s" : "amplitude_m_s2") : name;
-      const shownUnit = name === "amplitude" ? (rotational ? "°/s" : "m/s²") : unit;
-      const scale = name === "amplitude" ? (rotational ? RAD_TO_DEG : 1) : factor;
-      const current = source[apiName] ?? source[name === "amplitude" ? (rotational ? "amplitude_m_s2" : "amplitude_rad_s") : apiName];
-      const input = h("input", { type: "number", step: "any", value: current !== undefined ? +(current * scale).toFixed(4) : fallback,
-        "data-field": `${prefix}.cue.${apiName}` });
-      inputs[apiName] = [input, scale];
+      const apiName = AXIS_VALUES.has(name) ? `${name}_${unitKey}` : name;
+      const shownUnit = AXIS_VALUES.has(name) ? axisUnitShown : unit;
+      const scale = AXIS_VALUES.has(name) ? axisScale : factor;
+      // A value typed for the other kind of axis is carried over in the new unit's SI value.
+      const otherName = AXIS_VALUES.has(name) ? `${name}_${unitKey === "m_s2" ? "rad_s" : "m_s2"}` : apiName;
+      const current = source[apiName] ?? source[otherName];
+      const input = numberInput(`${prefix}.cue.${apiName}`, current !== undefined ? current : fallback, scale, shownUnit);
+      if (current === undefined && fallback !== null) input.value = fallback;
+      inputs[apiName] = [input, scale, fallback === null];
       cueFields.append(field(label, input, { unit: shownUnit }));
     }
+    if (kind.value === "multisine") { special = componentsEditor(prefix, source.components); cueFields.append(special); }
+    if (kind.value === "csv_replay") { special = csvEditor(prefix, source.csv); cueFields.append(special); }
+    cueFields.classList.toggle("wide", Boolean(special));
     axis.closest(".field").hidden = !AXIS_KINDS.has(kind.value);
   };
   const box = h("div.segment", { dataset: { segment: index } },
@@ -208,12 +362,14 @@ function segmentEditor(index, segment, onRemove) {
       field("Tilt limit (optional, may only tighten)", tilt, { unit: "°" })),
     cueFields);
   kind.addEventListener("change", () => renderCueFields({}));
-  axis.addEventListener("change", () => renderCueFields({}));
+  axis.addEventListener("change", () => renderCueFields(Object.fromEntries(Object.entries(inputs).map(([name, [input, scale]]) => [name, input.value === "" ? undefined : Number(input.value) / scale]))));
   renderCueFields(cue);
   box.read = () => {
     const spec = { kind: kind.value };
     if (AXIS_KINDS.has(kind.value)) spec.axis = axis.value;
     for (const [name, [input, scale]] of Object.entries(inputs)) if (input.value !== "") spec[name] = Number(input.value) / scale;
+    if (kind.value === "multisine") spec.components = special.read();
+    if (kind.value === "csv_replay") spec.csv = special.read();
     const limits = {};
     if (tilt.value !== "") limits.tilt_max_rad = Number(tilt.value) / RAD_TO_DEG;
     const result = { cue: spec, duration_s: Number(duration.value), limits };
@@ -223,13 +379,16 @@ function segmentEditor(index, segment, onRemove) {
   return box;
 }
 
+// `params`: patient (new prescription), protocol (a library programme to start from, js/protocols.js).
 export async function prescriptionPage(main, prescriptionId, params) {
   const existing = prescriptionId ? await get(`/prescriptions/${prescriptionId}`) : null;
   const patientId = existing ? existing.patient_id : Number(params.get("patient"));
   const patient = await get(`/patients/${patientId}`);
-  let segments = existing ? existing.current.content.segments.map((s) => ({ ...s })) : [{}];
-  const name = h("input", { value: existing ? existing.name : "", "data-field": "name", required: true });
-  const note = h("input", { value: "", "data-field": "note", placeholder: existing ? "What changed in this version" : "" });
+  const protocol = !existing && params.get("protocol") ? protocolByKey(params.get("protocol")) : null;
+  let segments = existing ? existing.current.content.segments.map((s) => ({ ...s }))
+    : protocol ? protocol.segments.map((s) => structuredClone(s)) : [{}];
+  const name = h("input", { value: existing ? existing.name : protocol ? protocol.name : "", "data-field": "name", required: true });
+  const note = h("input", { value: protocol ? `From the protocol “${protocol.name}”` : "", "data-field": "note", placeholder: existing ? "What changed" : "" });
   const segmentHost = h("div.segments");
   const previewHost = h("div");
   let editors = [];
@@ -244,13 +403,22 @@ export async function prescriptionPage(main, prescriptionId, params) {
     onsubmit: async (event) => {
       event.preventDefault();
       const body = { name: name.value, segments: readSegments(), note: note.value };
+      // The robot's own check first: a prescription it would refuse is saved only on purpose.
+      const verdict = await runPreview(form, previewHost, body.segments, patientId);
+      if (verdict === null) return;
+      if (!verdict.accepted) {
+        const ok = await confirmDialog({ title: "The robot would refuse this prescription",
+          body: `${rejectionWords(verdict.rejection)} It can be saved to finish later, but a session with it will not start.`,
+          ok: "Save anyway" });
+        if (!ok) return;
+      }
       try {
         const saved = existing ? await put(`/prescriptions/${existing.id}`, body) : await post("/prescriptions", { patient_id: patientId, ...body });
+        clearErrors("form");
         banner("info", `Prescription “${saved.name}” saved as version ${saved.latest_version}.`);
         go(`#/prescriptions/${saved.id}`);
       } catch (error) {
-        const unplaced = error.status === 422 ? showFieldErrors(form, error.fieldErrors) : [];
-        if (error.status !== 422 || unplaced.length) showError(error, "form");
+        showRefusal(form, error);
       }
     },
   },
@@ -263,21 +431,25 @@ export async function prescriptionPage(main, prescriptionId, params) {
   renderSegments();
   main.append(
     h("h1", {}, existing ? `Prescription: ${existing.name} (v${existing.latest_version})` : "New prescription"),
-    h("p", {}, "For ", h("a", { href: `#/patients/${patientId}` }, patient.name), `: ${fmt(patient.body_mass_kg, "kg", 0)}, ${fmt(patient.height_m * 100, "cm", 0)}.`),
+    h("p", {}, "For ", h("a", { href: `#/patients/${patientId}` }, patient.name), `: ${fmt(patient.body_mass_kg, "kg", 0)}, ${fmt(patient.height_m * 100, "cm", 0)}.`,
+      protocol ? ` Started from the protocol “${protocol.name}”: adapt it to the patient, preview, then save.` : ""),
     form, previewHost);
   name.focus();
 }
 
+// Runs the preview; returns the verdict, or null when the prescription itself was refused (shown at its fields).
 async function runPreview(form, host, segments, patientId) {
   clear(host).append(h("p.panel", { role: "status" }, "Computing the preview through the robot's own pipeline…"));
   try {
     const preview = await post("/prescriptions/preview", { segments, patient_id: patientId });
     showFieldErrors(form, {});
+    clearErrors("form");
     renderPreview(clear(host), preview);
+    return preview.verdict;
   } catch (error) {
     clear(host);
-    const unplaced = error.status === 422 ? showFieldErrors(form, error.fieldErrors) : [];
-    if (error.status !== 422 || unplaced.length) showError(error, "form");
+    showRefusal(form, error);
+    return null;
   }
 }
 
@@ -285,7 +457,8 @@ function renderPreview(host, p) {
   const verdict = p.verdict.accepted
     ? h("p.verdict.ok", {}, `The robot accepts this prescription: ${fmt(p.duration_s, "s", 1)} in all; highest use of a limit `,
       `${Math.round(Math.max(...Object.values(p.verdict.report.peak_use)) * 100)} %.`)
-    : h("p.verdict.bad", { role: "alert" }, `The robot would refuse this prescription: ${p.verdict.rejection.message}`);
+    : h("p.verdict.bad", { role: "alert" }, `The robot would refuse this prescription. ${rejectionWords(p.verdict.rejection)}`,
+      h("details.raw", {}, h("summary", {}, "technical details"), h("pre", {}, p.verdict.rejection.message)));
   const charts = h("div.charts");
   host.append(h("h2", {}, "Preview"), verdict, charts);
   const t = p.time_s;
@@ -325,7 +498,7 @@ export async function historyPage(main, params) {
     return h("tr", {}, h("td", {}, fmtDateTime(b.start)), h("td", {}, names[b.patient_id] || b.patient_id), h("td", {}, b.robot),
       h("td", {}, badge(b.status)), h("td.num", {}, runs.length),
       h("td", {}, runs.length ? badge(runs[runs.length - 1].outcome || runs[runs.length - 1].state) : "—"),
-      h("td", {}, h("a.button", { href: `#/session/${b.id}` }, "Open")));
+      h("td", {}, h("a.button", { href: `#/session/${b.id}` }, "Open"), " ", reportLink(runs[runs.length - 1])));
   }));
   main.append(rows.length ? table(["Booked for", "Patient", "Robot", "Booking", "Runs", "Last outcome", ""], rows) : h("p", {}, "No sessions."));
 }

@@ -1,4 +1,5 @@
 // DOM helpers, banners, the confirmation dialog and unit formatting shared by every page.
+import { conflictWords, fieldMessage, localTimes } from "./language.js";
 
 // h("tag.class#id", {attrs}, ...children): a small element builder (text children are escaped by the DOM).
 export function h(spec, attrs = {}, ...children) {
@@ -56,23 +57,38 @@ export function banner(kind, message, { key, sticky = false } = {}) {
   return el;
 }
 export function clearBanner(key) { bannerHost().querySelectorAll(`[data-key="${key}"]`).forEach((el) => el.remove()); }
+// Error banners of a form or an action carry a key: the next success of the same thing removes them.
+export function clearErrors(...keys) { keys.forEach(clearBanner); }
 export function showError(error, key) { return banner("error", errorText(error), { key }); }
 export function errorText(error) {
   if (error && error.status === 503) return `Robot offline: ${error.message}`;
-  if (error && error.status === 409) return `Not possible now: ${error.message}`;
-  if (error && error.status === 422) return `Please check the highlighted fields: ${error.message}`;
+  if (error && error.status === 409) return `Not possible now: ${conflictWords(error.message)}`;
+  if (error && error.status === 422) {
+    const items = Object.values(error.fieldItems || {});
+    return `Please check: ${items.map((item) => fieldMessage(item)).join(" ") || error.message}`;
+  }
   return `Error: ${error && error.message ? error.message : error}`;
 }
 
-// Shows API field errors (422) next to the inputs whose data-field matches the error's field path.
+// What the screen shows of an input's value: its label, unit and the factor from the API's SI value.
+function fieldMeta(input) {
+  const label = input.dataset.label || (input.labels && input.labels[0] ? input.labels[0].textContent : "");
+  return { label, unit: input.dataset.unit || "", scale: Number(input.dataset.scale || 1) };
+}
+
+// Shows API field errors (422) next to the inputs whose data-field matches the error's field path, in the
+// input's own label, unit and numbering (js/language.js); `errors` maps a path to a structured refusal
+// (ApiError.fieldItems) or to a message already in words.
 export function showFieldErrors(form, errors) {
   form.querySelectorAll(".field-error").forEach((el) => el.remove());
   form.querySelectorAll(".invalid").forEach((el) => el.classList.remove("invalid"));
   let first = null;
   const unplaced = [];
-  for (const [name, message] of Object.entries(errors)) {
+  for (const [name, error] of Object.entries(errors)) {
     const input = findField(form, name);
-    if (!input) { unplaced.push(`${name}: ${message}`); continue; }
+    const words = (meta) => (typeof error === "string" ? localTimes(error) : fieldMessage({ path: name, ...error }, meta));
+    if (!input) { unplaced.push(words({})); continue; }
+    const message = words(fieldMeta(input));
     input.classList.add("invalid");
     input.setAttribute("aria-invalid", "true");
     const note = h("div.field-error", { role: "alert" }, message);
@@ -120,6 +136,8 @@ export function confirmDialog({ title, body, ok, checklist = [] }) {
 export function field(labelText, input, { unit, hint, id } = {}) {
   const inputId = id || input.id || `f-${Math.random().toString(36).slice(2, 9)}`;
   input.id = inputId;
+  if (!input.dataset.label) input.dataset.label = labelText;
+  if (unit && !input.dataset.unit) input.dataset.unit = unit;
   return h("div.field", {},
     h("label", { for: inputId }, labelText),
     unit ? h("div.unit-input", {}, input, h("span.unit", {}, unit)) : input,
@@ -131,4 +149,14 @@ export function table(headers, rows, { caption } = {}) {
     caption ? h("caption.muted", {}, caption) : null,
     h("thead", {}, h("tr", {}, headers.map((x) => (typeof x === "string" ? h("th", { scope: "col" }, x) : x)))),
     h("tbody", {}, rows));
+}
+
+// --- the "engineering" switch: tick timing, deadline misses, drive internals and viser's own controls are
+// for technicians; clinicians see them only on request (the choice is kept in this browser).
+const ENGINEERING_KEY = "ssp-rehab.engineering";
+export function engineeringOn() { return localStorage.getItem(ENGINEERING_KEY) === "on"; }
+export function setEngineering(on) {
+  localStorage.setItem(ENGINEERING_KEY, on ? "on" : "off");
+  document.body.classList.toggle("engineering", on);
+  window.dispatchEvent(new CustomEvent("ssp:engineering", { detail: on }));
 }

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import CheckConstraint, Date, Float, String, Text
+from sqlalchemy import CheckConstraint, Date, Float, String, Text, event
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base, UTCDateTime, utc_now
+from server.patients.search import search_key
 
 SEXES = ("female", "male", "other", "unknown")
 AFFECTED_SIDES = ("left", "right", "both", "none")
@@ -33,3 +34,12 @@ class Patient(Base):
     notes: Mapped[str] = mapped_column(Text, default="")
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utc_now)
     updated_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utc_now, onupdate=utc_now)
+    # Archived records leave the lists but stay whole: runs and prescriptions keep pointing at them.
+    archived_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, default=None)
+    search_key: Mapped[str] = mapped_column(String(300), default="", index=True)
+
+
+@event.listens_for(Patient, "before_insert")
+@event.listens_for(Patient, "before_update")
+def _refresh_search_key(_mapper: object, _connection: object, patient: Patient) -> None:
+    patient.search_key = search_key(patient.name, patient.identifier)

@@ -21,14 +21,26 @@ def list_patients(
     session: SessionDep,
     user: CurrentUser,
     search: Annotated[
-        str | None, Query(max_length=200, pattern=NO_NUL_PATTERN, description="Name or identifier.")
+        str | None,
+        Query(
+            max_length=200,
+            pattern=NO_NUL_PATTERN,
+            description="Part of the name or identifier; accents and case are ignored.",
+        ),
     ] = None,
     diagnosis: SearchText = None,
+    include_archived: Annotated[bool, Query(description="Also list archived records.")] = False,
     limit: Limit = 100,
     offset: Offset = 0,
 ) -> list[PatientOut]:
     patients = service.list_patients(
-        session=session, actor_id=user.id, search=search, diagnosis=diagnosis, limit=limit, offset=offset
+        session=session,
+        actor_id=user.id,
+        search=search,
+        diagnosis=diagnosis,
+        include_archived=include_archived,
+        limit=limit,
+        offset=offset,
     )
     return [PatientOut.model_validate(p) for p in patients]
 

@@ -64,6 +64,9 @@ class PatientUpdate(RequestModel):
     affected_side: AffectedSide | None = None
     contraindications: LongText | None = None
     notes: LongText | None = None
+    archived: bool | None = Field(
+        None, description="true archives the record (it leaves the lists), false restores it."
+    )
 
     model_config = ConfigDict(json_schema_extra={"examples": [{"body_mass_kg": 63.0, "notes": "reassessed"}]})
 
@@ -84,3 +87,4 @@ class PatientOut(ResponseModel):
     notes: str
     created_at: dt.datetime
     updated_at: dt.datetime
+    archived_at: dt.datetime | None = None

@@ -3,7 +3,9 @@ through the audit journal (durable, off the request's database path: `server.aud
 
 from __future__ import annotations
 
-from sqlalchemy import exists, func, or_, select
+import datetime as dt
+
+from sqlalchemy import exists, func, select
 from sqlalchemy.orm import Session
 
 from server.audit import service as audit
@@ -11,6 +13,7 @@ from server.db import writes
 from server.errors import ConflictError, NotFoundError
 from server.patients.models import Patient
 from server.patients.schemas import PatientCreate, PatientUpdate
+from server.patients.search import fold
 
 
 def _identifier_taken(session: Session, identifier: str, except_id: int | None = None) -> bool:
@@ -51,13 +54,17 @@ def list_patients(
     actor_id: int,
     search: str | None = None,
     diagnosis: str | None = None,
+    include_archived: bool = False,
     limit: int = 100,
     offset: int = 0,
 ) -> list[Patient]:
     query = select(Patient).order_by(Patient.name, Patient.id).limit(limit).offset(offset)
     if search:
-        pattern = f"%{search.lower()}%"
-        query = query.where(or_(func.lower(Patient.name).like(pattern), func.lower(Patient.identifier).like(pattern)))
+        # LIKE's own wildcards in the search text match literally.
+        escaped = fold(search).replace("\\", "\\\\").replace("%", "\\%").replace("_", "\\_")
+        query = query.where(Patient.search_key.like(f"%{escaped}%", escape="\\"))
+    if not include_archived:
+        query = query.where(Patient.archived_at.is_(None))
     if diagnosis:
         query = query.where(func.lower(Patient.diagnosis) == diagnosis.lower())
     patients = list(session.scalars(query))
@@ -78,8 +85,17 @@ def update_patient(*, session: Session, patient_id: int, data: PatientUpdate, ac
     changes = data.model_dump(exclude_unset=True, exclude_none=True)
     if "identifier" in changes and _identifier_taken(session, changes["identifier"], except_id=patient.id):
         raise ConflictError("identifier is already used by another patient", field="identifier")
+    archived = changes.pop("archived", None)
     for name, value in changes.items():
         setattr(patient, name, value)
+    if archived is not None and archived != (patient.archived_at is not None):
+        patient.archived_at = dt.datetime.now(dt.UTC) if archived else None
+        audit.record(
+            session=session, user_id=actor_id, action="archive" if archived else "restore", resource_type="patient",
+            resource_id=patient.id,
+        )  # fmt: skip
+    if not changes:
+        return patient
     audit.record(
         session=session,
         user_id=actor_id,

@@ -40,6 +40,7 @@ from server.auth.security import TokenClaims
 from server.db import Database, SessionDep, writes
 from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
 from server.jsonable import to_jsonable
+from server.reviews.service import refuse_start_while_unacknowledged
 from server.scheduling.service import get_booking
 from server.sessions import logs, service
 from server.sessions.models import SessionRun
@@ -100,7 +101,9 @@ def _record_emergency_stop(database: Database, user_id: int, worker: WorkerContr
 def start_session(
     session_id: IdPath, request: Request, session: SessionDep, user: CurrentUser, worker: WorkerDep
 ) -> SessionRunOut:
-    """Loads the session's prescription version into the worker and starts motion; records a new run."""
+    """Loads the session's prescription version into the worker and starts motion; records a new run.
+    Refused (409) while the robot's last run ended in an unacknowledged fall, fault or limit stop."""
+    refuse_start_while_unacknowledged(session=session, session_id=session_id)
     run = service.start_run(
         session=session, session_id=session_id, worker=worker, actor_id=user.id, recorder=request.app.state.recorder
     )

@@ -23,7 +23,12 @@ ROD_RADIUS_M = 0.014
 RAIL_RADIUS_M = 0.02
 PLATFORM_THICKNESS_M = 0.04
 FOOT_PLATE_SIZE_M = (0.30, 0.14, 0.02)
-FIGURE_HEIGHT_M = 1.70  # a generic adult: the view never shows who the patient is
+FIGURE_HEIGHT_M = 1.70  # a generic adult until the page names the patient's height (never who it is)
+FIGURE_HEIGHT_RANGE_M = (0.5, 2.5)  # the patient record's own range (server.patients.schemas.HeightM)
+# Where the patient faces and which foot is which (stance frame: x forward, y to the patient's left).
+DIRECTION_LABELS = {"front": ("FRONT: the patient faces this way", (1.05, 0.0, 0.05)),
+                    "left": ("LEFT foot side", (0.0, 0.75, 0.05)),
+                    "right": ("RIGHT foot side", (0.0, -0.75, 0.05))}  # fmt: skip
 
 COLOURS = {
     "rail": (70, 70, 80),
@@ -143,8 +148,30 @@ class TwinScene:
             for i in range(12)
         ]
         self.platforms = [self._add_platform(scene, root, index, side) for index, side in enumerate(twin.sides)]
+        self.labels = {
+            name: scene.add_label(f"{root}/labels/{name}", text, position=position, font_screen_scale=1.2)
+            for name, (text, position) in DIRECTION_LABELS.items()
+        }
+        self.root = root
+        self.figure_height_m = FIGURE_HEIGHT_M
+        self.figure_parts: list[Any] = []
         self.patient = self._add_patient(scene, root)
         self.show(np.zeros(6), self.geometry.neutral_sliders_m)
+
+    def set_figure_height(self, height_m: float) -> bool:
+        """Rebuilds the figure at this standing height (m); False if it already has it. The figure's
+        proportions are a generic adult's: only the height follows the patient."""
+        low, high = FIGURE_HEIGHT_RANGE_M
+        if not low <= height_m <= high:
+            raise ValueError(f"height_m = {height_m!r}: must be in [{low:g}, {high:g}] m")
+        if abs(height_m - self.figure_height_m) < 1e-4:
+            return False
+        with self.server.atomic():
+            for part in self.figure_parts:
+                part.remove()
+            self.figure_height_m = float(height_m)
+            self.figure_parts = self._add_figure(self.server.scene, self.root)
+        return True
 
     def _add_rails(self, scene: Any, root: str) -> None:
         """Static: one rail per distinct rail line of each robot, spanning both halves' strokes."""
@@ -194,6 +221,10 @@ class TwinScene:
     def _add_patient(self, scene: Any, root: str) -> Any:
         """A plain standing figure on the two foot plates, carried by the stance frame."""
         frame = scene.add_frame(f"{root}/patient", show_axes=False)
+        self.figure_parts = self._add_figure(scene, root)
+        return frame
+
+    def _add_figure(self, scene: Any, root: str) -> list[Any]:
         feet_y = [
             float(
                 (
@@ -204,27 +235,32 @@ class TwinScene:
             )
             for i, side in enumerate(self.geometry.twin.sides)
         ]
-        h = FIGURE_HEIGHT_M
+        h = self.figure_height_m
+        scale = h / FIGURE_HEIGHT_M
         base = FOOT_PLATE_SIZE_M[2]
         hip_z, shoulder_z = base + 0.53 * h, base + 0.82 * h
-        hip_half_width = 0.09 * h / 1.7
+        hip_half_width = 0.09 * scale
         colour = COLOURS["patient"]
+        parts = []
         for index, foot_y in enumerate(feet_y):
             bottom = np.array([0.0, foot_y, base])
             top = np.array([0.0, np.sign(foot_y) * hip_half_width, hip_z])
-            self._add_limb(scene, f"{root}/patient/leg_{index}", bottom, top, 0.06, colour)
-            arm_top = np.array([0.0, np.sign(foot_y) * 0.2, shoulder_z])
-            arm_bottom = np.array([0.02, np.sign(foot_y) * 0.24, shoulder_z - 0.33 * h])
-            self._add_limb(scene, f"{root}/patient/arm_{index}", arm_bottom, arm_top, 0.04, colour)
-        self._add_limb(
-            scene, f"{root}/patient/torso", np.array([0.0, 0.0, hip_z]), np.array([0.0, 0.0, shoulder_z]), 0.15, colour
-        )
-        scene.add_icosphere(f"{root}/patient/head", radius=0.11, color=colour, position=(0.0, 0.0, shoulder_z + 0.14))
-        return frame
+            parts.append(self._add_limb(scene, f"{root}/patient/leg_{index}", bottom, top, 0.06 * scale, colour))
+            arm_top = np.array([0.0, np.sign(foot_y) * 0.2 * scale, shoulder_z])
+            arm_bottom = np.array([0.02, np.sign(foot_y) * 0.24 * scale, shoulder_z - 0.33 * h])
+            parts.append(
+                self._add_limb(scene, f"{root}/patient/arm_{index}", arm_bottom, arm_top, 0.04 * scale, colour)
+            )
+        torso = (np.array([0.0, 0.0, hip_z]), np.array([0.0, 0.0, shoulder_z]))
+        parts.append(self._add_limb(scene, f"{root}/patient/torso", *torso, 0.15 * scale, colour))
+        head_radius = 0.11 * scale
+        parts.append(scene.add_icosphere(f"{root}/patient/head", radius=head_radius, color=colour,
+                                         position=(0.0, 0.0, shoulder_z + 0.14 * scale)))  # fmt: skip
+        return parts
 
     @staticmethod
-    def _add_limb(scene: Any, name: str, start: np.ndarray, end: np.ndarray, radius: float, colour: tuple) -> None:
-        scene.add_cylinder(
+    def _add_limb(scene: Any, name: str, start: np.ndarray, end: np.ndarray, radius: float, colour: tuple) -> Any:
+        return scene.add_cylinder(
             name,
             radius=radius,
             height=float(np.linalg.norm(end - start)),

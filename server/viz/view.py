@@ -24,6 +24,25 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_RATE_HZ = 30.0
 MIN_RATE_HZ = 30.0  # issue 7: the view follows the robot at 30 Hz or more
+# Camera presets: (position, look-at) in the world frame, m; x is where the patient faces, y their left.
+CAMERA_PRESETS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "oblique": ((3.4, -3.4, 2.4), (0.0, 0.0, 0.6)),
+    "front": ((4.2, 0.0, 1.2), (0.0, 0.0, 0.8)),
+    "left": ((0.0, 4.2, 1.2), (0.0, 0.0, 0.8)),
+    "right": ((0.0, -4.2, 1.2), (0.0, 0.0, 0.8)),
+    "top": ((0.01, 0.0, 5.0), (0.0, 0.0, 0.0)),
+}
+PRESET_WORDS = {
+    "oblique": "Overview",
+    "front": "Front",
+    "left": "Left side",
+    "right": "Right side",
+    "top": "From above",
+}
+# viser warns each browser on software WebGL (client/src/BrowserWarning.tsx); in the session page the
+# console's own status line says how the view runs, so the notice is taken away again.
+SOFTWARE_WEBGL_NOTICE = "webgl-software-rendering"
+NOTICE_REMOVAL_DELAYS_S = (0.5, 2.0, 5.0)  # the browser shows it on mount, before or after connecting
 
 
 class ReplayError(ValueError):
@@ -105,6 +124,7 @@ class LiveView:
         self.last_tick: int | None = None
         self.server: Any = None
         self.scene: TwinScene | None = None
+        self.camera_preset = "oblique"
 
     def start(self) -> None:
         import viser
@@ -115,9 +135,17 @@ class LiveView:
         self.server.gui.configure_theme(
             control_layout="floating", control_width="small", show_logo=False, show_share_button=False
         )
-        self.server.initial_camera.position = (3.4, -3.4, 2.4)
-        self.server.initial_camera.look_at = (0.0, 0.0, 0.6)
+        position, look_at = CAMERA_PRESETS["oblique"]
+        self.server.initial_camera.position = position
+        self.server.initial_camera.look_at = look_at
         self.scene = TwinScene(self.server, self.twin)
+        # The camera presets are the panel's content, so viser's developer controls (server address,
+        # statistics, dev settings) stay behind its settings button instead of filling the panel.
+        with self.server.gui.add_folder("Camera"):
+            for preset, label in PRESET_WORDS.items():
+                button = self.server.gui.add_button(label)
+                button.on_click(lambda _event, preset=preset: self.set_camera(preset))
+        self.server.on_client_connect(self._hide_software_webgl_notice)
         self._thread = threading.Thread(target=self._run, name="viz-feed", daemon=True)
         self._thread.start()
         logger.info("3D view on port %d at %.0f Hz", self.port, self.rate_hz)
@@ -132,6 +160,39 @@ class LiveView:
     @property
     def port(self) -> int:
         return int(self.server.get_port()) if self.server is not None else self.requested_port
+
+    # --- camera, figure, notices -----------------------------------------------------------------------
+
+    def set_camera(self, preset: str) -> None:
+        """Every open view (and views opened later) looks from this preset."""
+        if preset not in CAMERA_PRESETS:
+            raise ValueError(f"preset = {preset!r}: must be one of {sorted(CAMERA_PRESETS)}")
+        position, look_at = CAMERA_PRESETS[preset]
+        self.server.initial_camera.position = position
+        self.server.initial_camera.look_at = look_at
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.position = position
+                client.camera.look_at = look_at
+        self.camera_preset = preset
+
+    def set_figure_height(self, height_m: float) -> bool:
+        assert self.scene is not None
+        return self.scene.set_figure_height(height_m)
+
+    def _hide_software_webgl_notice(self, client: Any) -> None:
+        from viser._messages import RemoveNotificationMessage  # no public switch for this notice in viser 1.1
+
+        def remove() -> None:
+            try:
+                client._websock_connection.queue_message(RemoveNotificationMessage(SOFTWARE_WEBGL_NOTICE))
+            except Exception:  # the browser left, or viser changed its internals: the notice stays, harmless
+                logger.debug("3D view: could not remove the software-WebGL notice", exc_info=True)
+
+        for delay_s in NOTICE_REMOVAL_DELAYS_S:
+            timer = threading.Timer(delay_s, remove)
+            timer.daemon = True
+            timer.start()
 
     # --- modes -------------------------------------------------------------------------------------
 
@@ -158,6 +219,9 @@ class LiveView:
             "frames_shown": scene.frames_shown if scene is not None else 0,
             "last_tick": self.last_tick,
             "robot_connected": self.latest_state is not None,
+            "camera_preset": self.camera_preset,
+            "camera_presets": list(CAMERA_PRESETS),
+            "figure_height_m": scene.figure_height_m if scene is not None else None,
         }
         if replay is not None:
             status.update(

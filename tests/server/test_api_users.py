@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import shlex
 from pathlib import Path
 
 import pytest
@@ -91,3 +92,27 @@ def test_create_user_command_and_first_start_message(tmp_path: Path, caplog: pyt
         login = client.post("/api/v1/auth/login", json={"username": "chief", "password": "chief-password"})
         assert login.status_code == 200 and login.json()["user"]["role"] == "admin"
     assert "create-user" not in caplog.text
+
+
+def test_first_start_hint_is_a_copyable_command_that_prompts_for_the_password(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    data_dir = tmp_path / "data dir with spaces"
+    settings = Settings(_env_file=None, data_dir=data_dir, secret_key=TEST_SECRET, start_worker=False)  # type: ignore[call-arg]
+    caplog.set_level(logging.WARNING, logger="server.app")
+    with TestClient(create_app(settings)):
+        pass
+    command_line = caplog.text.split("create the first admin", 1)[1].splitlines()[1].strip()
+    assert "--password" not in command_line and "<password>" not in command_line  # never in the shell history
+    words = shlex.split(command_line)
+    executable = Path(words[0])
+    assert executable.is_absolute() and executable.is_file(), f"{words[0]} is not this installation's CLI"
+    arguments = words[words.index("create-user") :]
+    assert arguments[arguments.index("--data-dir") + 1] == str(data_dir.resolve())
+    # The command as printed asks for the password twice (hidden) and creates the admin.
+    result = CliRunner().invoke(cli, arguments, input="first-admin-pass\nfirst-admin-pass\n")
+    assert result.exit_code == 0, result.output
+    assert "Password" in result.output
+    with TestClient(create_app(settings)) as client:
+        login = client.post("/api/v1/auth/login", json={"username": "admin", "password": "first-admin-pass"})
+        assert login.status_code == 200 and login.json()["user"]["role"] == "admin"

@@ -4,6 +4,7 @@ never gets a 5xx answer."""
 
 from __future__ import annotations
 
+import datetime as dt
 import re
 from collections.abc import Iterator
 from typing import Any
@@ -13,11 +14,13 @@ import schemathesis
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given
 from hypothesis import settings as hypothesis_settings
+from sqlalchemy import select
 
 from server.app import create_app
 from server.db import Database
+from server.prescriptions.models import PrescriptionVersion
 from server.settings import Settings
-from tests.server.conftest import FakeWorker, Seed, create_patient, create_prescription
+from tests.server.conftest import FakeWorker, Seed, book, create_patient, create_prescription
 
 EXAMPLES_PER_OPERATION = 6
 # Operations that would end the test's own login (revoking the token every later call uses).
@@ -33,15 +36,34 @@ def request_bodies(document: dict[str, Any]) -> Iterator[tuple[str, str, dict[st
                 yield method.upper(), path, document["components"]["schemas"][reference.rsplit("/", 1)[-1]]
 
 
-def test_every_request_body_has_an_example_the_api_accepts(client: TestClient, seed: Seed) -> None:
+def _fallen_run(database: Database, booking: dict[str, Any]) -> int:
+    """A run that a fall ended, as the recorder writes it: what the run-review bodies act on."""
+    from server.sessions.models import SessionRun
+
+    with database.session() as session:
+        version_id = session.scalar(
+            select(PrescriptionVersion.id).where(PrescriptionVersion.prescription_id == booking["prescription_id"])
+        )
+        run = SessionRun(scheduled_session_id=booking["id"], prescription_version_id=version_id, robot=booking["robot"],
+                         state="ended", outcome="fall", ended_at=dt.datetime.now(dt.UTC))  # fmt: skip
+        session.add(run)
+        session.commit()
+        return int(run.id)
+
+
+def test_every_request_body_has_an_example_the_api_accepts(client: TestClient, seed: Seed, database: Database) -> None:
     document = client.get("/openapi.json").json()
     admin = seed.headers("admin")
     patient_id = create_patient(client, admin)
+    prescription_id = create_prescription(client, admin, patient_id)
+    booking = book(client, admin, patient_id=patient_id, prescription_id=prescription_id, robot="twin-9",
+                   start="2032-01-05T09:00:00+00:00").json()[0]  # fmt: skip
     existing = {
         "patient_id": patient_id,
-        "prescription_id": create_prescription(client, admin, patient_id),
+        "prescription_id": prescription_id,
         "user_id": seed.therapist_id,
         "therapist_id": seed.therapist_id,
+        "run_id": _fallen_run(database, booking),
     }
     bodies = list(request_bodies(document))
     assert len(bodies) >= 9

@@ -89,6 +89,9 @@ class RecordingHandle:
         self._server.assignments.append((self.name, attribute, self._server.in_atomic))
         object.__setattr__(self, attribute, np.asarray(value))
 
+    def remove(self) -> None:
+        self._server.removed.append((self.name, self._server.in_atomic))
+
 
 class RecordingScene:
     def __init__(self, server: RecordingServer) -> None:
@@ -98,8 +101,9 @@ class RecordingScene:
         if not method.startswith("add_"):
             raise AttributeError(method)
 
-        def add(name: str, **kwargs: Any) -> RecordingHandle:
+        def add(name: str, *args: Any, **kwargs: Any) -> RecordingHandle:
             self.server.added.append((method, name))
+            self.server.arguments[name] = (args, kwargs)
             return RecordingHandle(self.server, name)
 
         return add
@@ -108,6 +112,8 @@ class RecordingScene:
 class RecordingServer:
     def __init__(self) -> None:
         self.added: list[tuple[str, str]] = []
+        self.arguments: dict[str, tuple[tuple[Any, ...], dict[str, Any]]] = {}
+        self.removed: list[tuple[str, bool]] = []
         self.assignments: list[tuple[str, str, bool]] = []
         self.in_atomic = False
         self.scene = RecordingScene(self)
@@ -230,3 +236,68 @@ def test_a_log_without_a_needed_column_is_refused_by_name(missing: str) -> None:
 def test_the_view_refuses_a_rate_below_30_hz() -> None:
     with pytest.raises(ValueError, match="rate_hz"):
         LiveView(TWIN, None, rate_hz=20.0)
+
+
+# --- issue 16: labels, a figure of the patient's height, camera presets -----------------------------
+
+
+def test_front_left_and_right_are_labelled() -> None:
+    server = RecordingServer()
+    TwinScene(server, TWIN)
+    labels = {name: server.arguments[name] for method, name in server.added if method == "add_label"}
+    texts = {args[0]: kwargs["position"] for args, kwargs in labels.values()}
+    front = next(position for text, position in texts.items() if text.startswith("FRONT"))
+    left = next(position for text, position in texts.items() if text.startswith("LEFT"))
+    right = next(position for text, position in texts.items() if text.startswith("RIGHT"))
+    assert front[0] > 0.5 and left[1] > 0.5 and right[1] < -0.5  # x forward, y to the patient's left
+
+
+def _head_top(server: RecordingServer) -> float:
+    _, kwargs = server.arguments["/twin/patient/head"]
+    return float(kwargs["position"][2] + kwargs["radius"])
+
+
+def test_the_figure_takes_the_patients_height_and_is_rebuilt_only_on_a_change() -> None:
+    server = RecordingServer()
+    scene = TwinScene(server, TWIN)
+    generic_top = _head_top(server)
+    assert scene.set_figure_height(1.92) is True
+    assert len(server.removed) == len(scene.figure_parts) and all(atomic for _, atomic in server.removed)
+    tall_top = _head_top(server)
+    assert tall_top > generic_top + 0.15  # 22 cm taller, the head with it
+    assert scene.set_figure_height(1.92) is False and len(server.removed) == len(scene.figure_parts)
+    scene.set_figure_height(1.50)
+    assert _head_top(server) < generic_top
+    with pytest.raises(ValueError, match="height_m"):
+        scene.set_figure_height(3.0)
+
+
+class RecordingCamera:
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    look_at: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+class RecordingClient:
+    def __init__(self) -> None:
+        self.camera = RecordingCamera()
+
+    @contextlib.contextmanager
+    def atomic(self) -> Any:
+        yield
+
+
+def test_camera_presets_move_every_open_view_and_later_ones() -> None:
+    from server.viz.view import CAMERA_PRESETS
+
+    view, server = _view_with(None)
+    clients = {1: RecordingClient(), 2: RecordingClient()}
+    server.get_clients = lambda: clients  # type: ignore[attr-defined]
+    server.initial_camera = RecordingCamera()  # type: ignore[attr-defined]
+    view.set_camera("front")
+    assert all(c.camera.position == CAMERA_PRESETS["front"][0] for c in clients.values())
+    assert server.initial_camera.position == CAMERA_PRESETS["front"][0]  # type: ignore[attr-defined]
+    assert view.status()["camera_preset"] == "front"
+    front, left = CAMERA_PRESETS["front"][0], CAMERA_PRESETS["left"][0]
+    assert front[0] > abs(front[1]) and left[1] > abs(left[0])  # in front of the patient, at their left
+    with pytest.raises(ValueError, match="preset"):
+        view.set_camera("behind")

@@ -1,0 +1,47 @@
+"""`/runs/{id}/review`, `/runs/{id}/acknowledge`, `/runs/{id}/notes`, `/reviews/pending`."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query
+
+from server.api_types import NO_NUL_PATTERN, IdPath
+from server.auth.dependencies import CurrentUser, current_user
+from server.db import SessionDep
+from server.reviews import service
+from server.reviews.schemas import AcknowledgementIn, AcknowledgementOut, RunNotesIn, RunNotesOut, RunReviewOut
+
+router = APIRouter(tags=["reviews"], dependencies=[Depends(current_user)])
+RobotName = Annotated[str, Query(min_length=1, max_length=64, pattern=NO_NUL_PATTERN, description="Robot name.")]
+
+
+@router.get("/runs/{run_id}/review", response_model=RunReviewOut)
+def run_review(run_id: IdPath, session: SessionDep) -> RunReviewOut:
+    """Whether the run's fall or fault still needs an acknowledgement, who gave it, and the run's notes."""
+    return service.review(session=session, run_id=run_id)
+
+
+@router.post(
+    "/runs/{run_id}/acknowledge",
+    response_model=AcknowledgementOut,
+    responses={409: {"description": "Nothing to acknowledge"}},
+)
+def acknowledge_run(
+    run_id: IdPath, data: AcknowledgementIn, session: SessionDep, user: CurrentUser
+) -> AcknowledgementOut:
+    """Records (as an `acknowledged` event of the run) that the therapist attended to a fall, fault or
+    limit stop: the console starts the robot again only after it."""
+    return service.acknowledge(session=session, run_id=run_id, user_id=user.id, note=data.note)
+
+
+@router.put("/runs/{run_id}/notes", response_model=RunNotesOut)
+def save_run_notes(run_id: IdPath, data: RunNotesIn, session: SessionDep, user: CurrentUser) -> RunNotesOut:
+    """The therapist's SOAP notes of the run (replaces the previous text; each save is audited)."""
+    return service.save_notes(session=session, run_id=run_id, data=data, user_id=user.id)
+
+
+@router.get("/reviews/pending", response_model=RunReviewOut | None)
+def pending_acknowledgement(robot: RobotName, session: SessionDep) -> RunReviewOut | None:
+    """The robot's last run if it ended in a fall, fault or limit stop not yet acknowledged; else null."""
+    return service.pending_on_robot(session=session, robot=robot)
