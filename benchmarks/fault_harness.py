@@ -291,6 +291,23 @@ class Console:
                 )
         return [dict(row) for row in rows]
 
+    def run_row(self, run_id: int) -> dict[str, Any]:
+        """The run as stored, read from the database (works while the web process is stopped)."""
+        with self.database() as connection:
+            row = connection.execute(text("SELECT * FROM session_runs WHERE id = :r"), {"r": run_id}).mappings().one()
+        return dict(row)
+
+    def last_sample_utc_s(self, run_id: int) -> float | None:
+        """UTC (POSIX s) of the last telemetry sample stored for the run."""
+        from server.sessions.recorder import decode_chunk
+
+        with self.database() as connection:
+            blobs = connection.execute(
+                text("SELECT data FROM telemetry_chunks WHERE run_id = :r ORDER BY sequence DESC LIMIT 1"),
+                {"r": run_id},
+            ).scalars()
+            return max((float(decode_chunk(blob)["utc_s"].max()) for blob in blobs), default=None)
+
     def telemetry_ticks(self, run_id: int) -> tuple[int, int, int]:
         """(samples stored, first tick, last tick) of a run's telemetry chunks."""
         import numpy as np

@@ -164,11 +164,15 @@ class RobotDaemon:
                         ).id
                     )
                 )
-            except Exception:
+            except Exception as error:
                 # Motion without a record of it is not allowed: stop the robot, then report the failure.
                 self.worker.stop()
                 self._arming = None
-                raise
+                if isinstance(error, ConflictError):
+                    raise
+                raise WorkerUnavailableError(
+                    f"the run could not be recorded ({type(error).__name__}: {error}); the robot was stopped again"
+                ) from error
             self._confirm(run_id, session_id, controller)
             return run_id
         finally:

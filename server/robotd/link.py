@@ -36,14 +36,17 @@ RECONNECT_PERIOD_S = 0.25
 ESTOP_CONFIRM_TIMEOUT_S = 0.25  # the worker checks the flag every tick (1 ms); a live one confirms at once
 COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may take minutes
 MAX_EVENTS_KEPT = 256
+RESPAWN_PERIOD_S = 5.0
 
 
 class DaemonLink:
     """One web process's link to the daemon of `paths.robot` (started by `ensure_daemon` if need be)."""
 
-    def __init__(self, paths: RobotPaths) -> None:
+    def __init__(self, paths: RobotPaths, *, restart_absent: bool = False) -> None:
         self.paths = paths
         self.robot = paths.robot
+        self.restart_absent = restart_absent
+        self._last_spawn_s = time.monotonic()
         self.link_id: str | None = None
         self._socket: socket.socket | None = None
         self._send_lock = threading.Lock()
@@ -174,7 +177,20 @@ class DaemonLink:
             except Exception:
                 log.exception("robot link failed")
             self._connected.clear()
+            self._restart_if_absent()
             self._closed.wait(RECONNECT_PERIOD_S)
+
+    def _restart_if_absent(self) -> None:
+        """A daemon that died (kill -9, a crash) is started again, at most every RESPAWN_PERIOD_S: it
+        closes the run it left open as interrupted, and the robot is free again."""
+        from server.robotd.process import daemon_running
+
+        if not self.restart_absent or time.monotonic() - self._last_spawn_s < RESPAWN_PERIOD_S:
+            return
+        if not daemon_running(self.paths):
+            log.warning("the robot daemon of %s is gone: starting it again", self.robot)
+            self._last_spawn_s = time.monotonic()
+            spawn_daemon(self.paths)
 
     def _link_once(self) -> None:
         connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)

@@ -209,6 +209,8 @@ class RobotDaemonProcess:
     def run(self) -> int:
         lock = take_lock(self.paths)
         self.paths.pid.write_text(f"{os.getpid()}\n")
+        _unlink_stale_shared_memory(self.paths)
+        self.paths.shared_memory.write_text(self.status.name + "\n")
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, lambda *_: self._stop.set())
         self._publish()
@@ -232,6 +234,9 @@ class RobotDaemonProcess:
                 hal_options=hal_options(settings),
             )
             self.worker.start(timeout_s=WORKER_START_TIMEOUT_S)
+            worker_blocks = (self.worker.control, self.worker.state, self.worker.telemetry, self.worker.events)
+            names = [self.status.name, *(block.name for block in worker_blocks)]
+            self.paths.shared_memory.write_text("\n".join(names) + "\n")
             self.planner = Planner(self.worker.twin_path, settings.control_rate_hz, self.worker.supervisor_config)
             self.planner.start()
             self.daemon = RobotDaemon(
@@ -270,11 +275,23 @@ class RobotDaemonProcess:
                 self.paths.socket.unlink()
             with contextlib.suppress(FileNotFoundError):
                 self.paths.pid.unlink()
+            with contextlib.suppress(FileNotFoundError):
+                self.paths.shared_memory.unlink()
             beats.join(1.0)
             self.status.close()
             if engine is not None:
                 engine.dispose()
             os.close(lock)
+
+
+def _unlink_stale_shared_memory(paths: RobotPaths) -> None:
+    """A crashed daemon could not free its blocks; they are only names now (any mapping stays valid)."""
+    if not paths.shared_memory.exists():
+        return
+    for name in paths.shared_memory.read_text().split():
+        with contextlib.suppress(OSError):
+            os.unlink(f"/dev/shm/{name.lstrip('/')}")
+    paths.shared_memory.unlink()
 
 
 def _send(connection: socket.socket, message: dict[str, Any]) -> None:

@@ -70,6 +70,11 @@ class RobotPaths:
         return self.directory / f"{self.robot}.sock"
 
     @property
+    def shared_memory(self) -> Path:
+        """The names of the daemon's shared-memory blocks, unlinked by the next daemon if this one crashed."""
+        return self.directory / f"{self.robot}.shm"
+
+    @property
     def log(self) -> Path:
         return self.directory / f"{self.robot}.log"
 

@@ -60,6 +60,6 @@ def attach_robot(settings: Settings) -> DaemonLink:
     paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
     if ensure_daemon(paths):
         logger.info("started the robot daemon for %s (log: %s)", settings.robot, paths.log)
-    link = DaemonLink(paths)
+    link = DaemonLink(paths, restart_absent=True)
     link.open()
     return link

@@ -211,3 +211,95 @@ def test_defect_6_a_killed_web_process_loses_no_telemetry_and_no_events(console:
     assert last >= disabled["tick"], f"telemetry ends at tick {last}, before the drives were off at {disabled['tick']}"
     assert stored == last - first + 1, f"{last - first + 1 - stored} samples lost between ticks {first} and {last}"
     assert console.run(run["id"])["sample_count"] == stored
+
+
+# --- the other fault-injection scenarios of issue 12 §7 ----------------------------------------------
+
+
+def wait_run_ended(console: Console, run_id: int, timeout_s: float = EVENT_TIMEOUT_S) -> dict:
+    row = wait_for(
+        lambda: (r := console.run_row(run_id))["state"] == "ended" and r, timeout_s, f"run {run_id} to end", 0.1
+    )
+    return dict(row)
+
+
+def test_sigstop_of_the_web_process_stops_its_session_and_frees_the_robot(console: Console) -> None:
+    run = start_ok(console, console.book())
+    console.wait_moving()
+    console.signal(signal.SIGSTOP)
+    try:
+        ended = wait_run_ended(console, run["id"])
+    finally:
+        console.signal(signal.SIGCONT)
+    assert ended["outcome"] == "interrupted", ended
+    kinds = [e["kind"] for e in console.events(run["id"])]
+    assert "service_lost" in kinds and "controlled_stop" in kinds, kinds
+    wait_for(lambda: "drives_disabled" in [e["kind"] for e in console.events(run["id"])], EVENT_TIMEOUT_S, "stop")
+    again = console.post(f"/sessions/{console.book()}/start")
+    assert again.status_code == 200, f"the robot is not free: {again.text}"
+
+
+def test_kill_of_the_daemon_is_reported_at_once_and_its_run_closed_by_the_next_daemon(console: Console) -> None:
+    run = start_ok(console, console.book())
+    console.wait_moving()
+    samples_grow(console, run["id"], 1000)
+    daemon = console.daemon_pid()
+    assert daemon is not None
+    os.kill(daemon, signal.SIGKILL)
+    robot = wait_for(lambda: (h := console.health()["robot"])["state"] != "ready" and h, 10.0, "/health to notice")
+    assert robot["state"] == "absent", robot
+    estop = console.post("/estop")  # the orphaned worker may still take it while it stops; never a false 200
+    assert estop.status_code == 200 or NO_ROBOT_PROCESS in estop.text, estop.text
+    ended = wait_run_ended(console, run["id"], timeout_s=600.0)  # the web side starts a new daemon
+    assert ended["outcome"] == "interrupted", ended
+    stored, first, last = console.telemetry_ticks(run["id"])
+    assert stored == last - first + 1, f"{last - first + 1 - stored} samples lost inside the recorded span"
+    wait_for(console.robot_ready, 600.0, "the restarted daemon")
+    again = console.post(f"/sessions/{console.book()}/start")
+    assert again.status_code == 200, f"the robot is not free: {again.text}"
+
+
+def test_sigstop_of_the_daemon_is_reported_and_the_worker_still_takes_the_estop(console: Console) -> None:
+    run = start_ok(console, console.book())
+    console.wait_moving()
+    daemon = console.daemon_pid()
+    assert daemon is not None
+    os.kill(daemon, signal.SIGSTOP)
+    try:
+        robot = wait_for(
+            lambda: (h := console.health()["robot"])["state"] == "absent" and h, 10.0, "/health to notice the hang"
+        )
+        assert "stopped answering" in robot["reason"], robot
+        assert console.get("/robot/state").status_code == 503
+        estop = console.post("/estop")
+        assert estop.status_code == 200, estop.text  # the worker itself is alive and latched it
+    finally:
+        os.kill(daemon, signal.SIGCONT)
+    ended = wait_run_ended(console, run["id"])
+    assert ended["outcome"] in ("emergency_stop", "interrupted"), ended
+    wait_for(console.robot_ready, EVENT_TIMEOUT_S, "the daemon to answer again")
+
+
+def test_the_estop_during_a_large_upload_is_latched(console: Console) -> None:
+    start_ok(console, console.book())
+    console.wait_moving()
+    rows = "\n".join(f"{i * 0.01:.2f},0.1,0.2,0.0" for i in range(50_000))
+    body = {
+        "patient_id": console.get("/patients").json()[0]["id"],
+        "name": "replay",
+        "segments": [
+            {
+                "cue": {
+                    "kind": "csv_replay",
+                    "csv": "time_s,specific_force_x_m_s2,specific_force_y_m_s2,specific_force_z_m_s2\n" + rows,
+                },
+                "duration_s": 60.0,
+            }
+        ],
+    }
+    uploader, uploaded = in_background(lambda: console.post("/prescriptions", json=body))
+    estop = console.post("/estop")
+    assert estop.status_code == 200, estop.text
+    assert console.get("/robot/state").json()["estop_latched"]
+    uploader.join(300)
+    assert uploaded and not isinstance(uploaded[0], Exception) and uploaded[0].status_code == 201

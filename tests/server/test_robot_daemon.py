@@ -130,3 +130,23 @@ def test_a_csv_cue_over_the_size_limit_is_refused_naming_the_field() -> None:
     with pytest.raises(InvalidFieldError) as refused:
         validated_prescription([segment], limits={})
     assert refused.value.field == "segments[0].cue.csv" and str(CSV_CUE_MAX_BYTES) in refused.value.limit
+
+
+def test_a_start_that_cannot_be_recorded_stops_the_robot_again_and_says_why(
+    robot_client: TestClient, seed: Seed, fake_worker: FakeWorker, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from sqlalchemy.exc import OperationalError
+
+    from server.sessions import service
+
+    booked = booked_session(robot_client, seed.headers())
+
+    def read_only(**_: object) -> None:
+        raise OperationalError("INSERT INTO session_runs", {}, Exception("attempt to write a readonly database"))
+
+    monkeypatch.setattr(service, "record_start", read_only)
+    response = robot_client.post(f"/api/v1/sessions/{booked.session_id}/start", headers=seed.headers())
+    assert response.status_code == 503 and "readonly database" in response.json()["detail"], response.text
+    assert "stopped again" in response.json()["detail"]
+    assert fake_worker.command_names() == ["load_prescription", "start_motion", "stop"]
+    assert robot_client.app.state.robot.active_run() is None
