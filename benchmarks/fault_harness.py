@@ -8,6 +8,8 @@ Every wait is event-based with a generous timeout: the tests run on a loaded 2-c
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
+import itertools
 import os
 import signal
 import socket
@@ -28,6 +30,8 @@ ADMIN = ("faultadmin", "fault-admin-password-1")
 SHORT_SINE = {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.3, "frequency_hz": 0.5}
 START_TIMEOUT_S = 900.0  # a cold numba cache on a loaded machine compiles for minutes
 EVENT_TIMEOUT_S = 60.0
+# Each booking in its own hour, across every console of this process (they may share a database).
+_booking_hours = itertools.count(int(time.time()) % 10_000 * 10)
 
 
 def free_port() -> int:
@@ -219,8 +223,8 @@ class Console:
         headers = self.headers() if auth else {}
         return httpx.post(f"{self.url}{path}", headers=headers, timeout=kwargs.pop("timeout", 300.0), **kwargs)
 
-    def book(self, *, segments: list[dict[str, Any]] | None = None, robot: str | None = None, hour: int = 9) -> int:
-        """A patient, a prescription and one booking; returns the booking (session) id."""
+    def book(self, *, segments: list[dict[str, Any]] | None = None, robot: str | None = None) -> int:
+        """A patient, a prescription and one booking (each in its own hour); returns the booking (session) id."""
         number = f"F-{time.time_ns()}"
         patient = self.post(
             "/patients",
@@ -239,14 +243,14 @@ class Console:
             "/prescriptions", json={"patient_id": patient.json()["id"], "name": "fault test", "segments": segments}
         )
         assert prescription.status_code == 201, prescription.text
-        minute = (time.time_ns() // 1000) % 60
+        start = dt.datetime(2031, 1, 1, tzinfo=dt.UTC) + dt.timedelta(hours=next(_booking_hours))
         booking = self.post(
             "/sessions",
             json={
                 "patient_id": patient.json()["id"],
                 "prescription_id": prescription.json()["id"],
                 "robot": robot or self.robot,
-                "start": f"2031-05-06T{hour:02d}:{minute:02d}:00+00:00",
+                "start": start.isoformat(),
                 "duration_s": 600,
             },
         )

@@ -63,6 +63,7 @@ class ActiveRun:
 class LinkState:
     """One attached console: alive while its link is open and it beats."""
 
+    pid: int | None = None  # the console's process, to name it in a refusal
     last_beat_s: float = field(default_factory=time.monotonic)
     open: bool = True
 
@@ -93,6 +94,7 @@ class RobotDaemon:
         self._starting: int | None = None
         self._arming: tuple[list[np.ndarray], list[dict[str, Any]]] | None = None
         self.links: dict[str, LinkState] = {}
+        self.lease_holder: str | None = None
         self.listeners: list[Listener] = []
         self.latest_sample: dict[str, Any] | None = None
         self.telemetry_lost = 0
@@ -134,6 +136,7 @@ class RobotDaemon:
                 raise ConflictError(
                     f"robot {self.robot!r} is busy with run {self.run.run_id} (session {self.run.session_id})"
                 )
+            self._take_lease(controller)
             self._starting = session_id
         try:
             try:
@@ -267,9 +270,25 @@ class RobotDaemon:
 
     # --- losses -------------------------------------------------------------------------------------
 
-    def link_opened(self, link_id: str) -> None:
+    def link_opened(self, link_id: str, pid: int | None = None) -> None:
         with self._lock:
-            self.links[link_id] = LinkState()
+            self.links[link_id] = LinkState(pid)
+
+    def _take_lease(self, controller: str | None) -> None:
+        """The session-control lease (issue 15 §2): one console at a time may start motion; it holds the
+        lease until its link ends or falls silent, and the daemon's watchdog follows its beats."""
+        if controller is None:
+            return
+        holder = self.links.get(self.lease_holder) if self.lease_holder is not None else None
+        alive = holder is not None and time.monotonic() - holder.last_beat_s <= self.web_stall_tolerance_s
+        if alive and self.lease_holder != controller:
+            assert holder is not None
+            raise ConflictError(
+                f"another console (process {holder.pid}) holds the session control of robot {self.robot!r}: "
+                "start motion there, or close it first",
+                field="lease",
+            )
+        self.lease_holder = controller
 
     def link_beat(self, link_id: str) -> None:
         link = self.links.get(link_id)
@@ -281,6 +300,8 @@ class RobotDaemon:
             link = self.links.pop(link_id, None)
             if link is not None:
                 link.open = False
+            if self.lease_holder == link_id:
+                self.lease_holder = None
             self._check_controller(closed=link_id)
 
     def _check_controller(self, closed: str | None = None) -> None:

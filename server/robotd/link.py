@@ -42,8 +42,11 @@ RESPAWN_PERIOD_S = 5.0
 class DaemonLink:
     """One web process's link to the daemon of `paths.robot` (started by `ensure_daemon` if need be)."""
 
-    def __init__(self, paths: RobotPaths, *, restart_absent: bool = False) -> None:
+    def __init__(
+        self, paths: RobotPaths, *, restart_absent: bool = False, environment: dict[str, str] | None = None
+    ) -> None:
         self.paths = paths
+        self.environment = environment or {}
         self.robot = paths.robot
         self.restart_absent = restart_absent
         self._last_spawn_s = time.monotonic()
@@ -190,13 +193,14 @@ class DaemonLink:
         if not daemon_running(self.paths):
             log.warning("the robot daemon of %s is gone: starting it again", self.robot)
             self._last_spawn_s = time.monotonic()
-            spawn_daemon(self.paths)
+            spawn_daemon(self.paths, self.environment)
 
     def _link_once(self) -> None:
         connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             connection.connect(str(self.paths.socket))
-            connection.sendall(b'{"cmd": "hello", "persistent": true}\n')
+            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid()}
+            connection.sendall((json.dumps(hello_request) + "\n").encode())
             reader = connection.makefile("rb")
             hello = json.loads(reader.readline() or b"null")
             if not hello or not hello.get("ok"):
@@ -221,7 +225,7 @@ class DaemonLink:
 
     def _attach(self, names: dict[str, Any]) -> None:
         with self._attach_lock:
-            if self._status is None or self._status.name != names["status_name"]:
+            if names.get("status_name") and (self._status is None or self._status.name != names["status_name"]):
                 self._status = StatusBlock(names["status_name"])
             if names.get("control_name") and (self._control is None or self._control.name != names["control_name"]):
                 self._control = ControlBlock(names["control_name"])
@@ -328,11 +332,11 @@ def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -
         )
 
 
-def ensure_daemon(paths: RobotPaths) -> bool:
+def ensure_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> bool:
     """Start the robot's daemon unless one runs; True if this call started it."""
     from server.robotd.process import daemon_running
 
     if daemon_running(paths):
         return False
-    spawn_daemon(paths)
+    spawn_daemon(paths, environment)
     return True

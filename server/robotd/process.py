@@ -91,14 +91,16 @@ class RobotDaemonProcess:
         self.settings = settings
         self.paths = RobotPaths(settings.data_dir.resolve(), robot)
         self.state, self.reason = DaemonState.STARTING, "starting: recovering open runs"
-        self.status = StatusBlock()
+        self.status: StatusBlock | None = None  # created once the lock is ours
         self.worker: WorkerClient | None = None
         self.planner: Planner | None = None
         self.daemon: RobotDaemon | None = None
         self.links: dict[str, socket.socket] = {}
+        self.link_pids: dict[str, int | None] = {}
         self._links_lock = threading.Lock()
         self._stop = threading.Event()
         self._worker_lost = False
+        self._started_s = time.monotonic()
 
     # --- status ---------------------------------------------------------------------------------
 
@@ -109,7 +111,12 @@ class RobotDaemonProcess:
 
     def _publish(self) -> None:
         run = self.daemon.active_run() if self.daemon is not None else None
-        self.status.publish(self.state, self.reason, os.getpid(), run)
+        if self.status is None:
+            return
+        reason = self.reason
+        if self.state is DaemonState.STARTING:  # progress while it warms up: the step and how long so far
+            reason = f"{reason} ({time.monotonic() - self._started_s:.0f} s so far)"
+        self.status.publish(self.state, reason, os.getpid(), run)
 
     def _beat_forever(self) -> None:
         last_sequence, last_change = -1, time.monotonic()
@@ -147,7 +154,7 @@ class RobotDaemonProcess:
         return {
             "robot": self.paths.robot,
             "pid": os.getpid(),
-            "status_name": self.status.name,
+            "status_name": self.status.name if self.status is not None else None,
             "control_name": worker.control.name if worker is not None else None,
             "state_name": worker.state.name if worker is not None else None,
         }
@@ -185,12 +192,13 @@ class RobotDaemonProcess:
             return daemon.active_run()
         raise ValueError(f"cmd = {command!r}: unknown")
 
-    def serve_link(self, connection: socket.socket, reader: Any) -> None:
+    def serve_link(self, connection: socket.socket, reader: Any, web_pid: int | None) -> None:
         link_id = uuid.uuid4().hex
         with self._links_lock:
             self.links[link_id] = connection
+            self.link_pids[link_id] = web_pid
         if self.daemon is not None:
-            self.daemon.link_opened(link_id)
+            self.daemon.link_opened(link_id, web_pid)
         try:
             _send(connection, {"ok": True, "result": {**self.hello(), "link_id": link_id}})
             for line in reader:
@@ -201,6 +209,7 @@ class RobotDaemonProcess:
         finally:
             with self._links_lock:
                 self.links.pop(link_id, None)
+                self.link_pids.pop(link_id, None)
             if self.daemon is not None:
                 self.daemon.link_closed(link_id)
 
@@ -210,7 +219,8 @@ class RobotDaemonProcess:
         lock = take_lock(self.paths)
         self.paths.pid.write_text(f"{os.getpid()}\n")
         _unlink_stale_shared_memory(self.paths)
-        self.paths.shared_memory.write_text(self.status.name + "\n")
+        self.status = status = StatusBlock()
+        self.paths.shared_memory.write_text(status.name + "\n")
         for signum in (signal.SIGTERM, signal.SIGINT):
             signal.signal(signum, lambda *_: self._stop.set())
         self._publish()
@@ -235,7 +245,7 @@ class RobotDaemonProcess:
             )
             self.worker.start(timeout_s=WORKER_START_TIMEOUT_S)
             worker_blocks = (self.worker.control, self.worker.state, self.worker.telemetry, self.worker.events)
-            names = [self.status.name, *(block.name for block in worker_blocks)]
+            names = [status.name, *(block.name for block in worker_blocks)]
             self.paths.shared_memory.write_text("\n".join(names) + "\n")
             self.planner = Planner(self.worker.twin_path, settings.control_rate_hz, self.worker.supervisor_config)
             self.planner.start()
@@ -248,8 +258,9 @@ class RobotDaemonProcess:
                 chunk_period_s=settings.log_flush_interval_s,
             )
             self.daemon.listeners.append(lambda events: self.push({"push": "events", "events": events}))
-            for link_id in list(self.links):
-                self.daemon.link_opened(link_id)
+            with self._links_lock:
+                for link_id, web_pid in self.link_pids.items():
+                    self.daemon.link_opened(link_id, web_pid)
             self.daemon.start()
             self.set_state(DaemonState.READY, f"backend {settings.backend} at {settings.control_rate_hz} Hz")
             self.push({"push": "ready", **self.hello()})
@@ -278,7 +289,7 @@ class RobotDaemonProcess:
             with contextlib.suppress(FileNotFoundError):
                 self.paths.shared_memory.unlink()
             beats.join(1.0)
-            self.status.close()
+            status.close()
             if engine is not None:
                 engine.dispose()
             os.close(lock)
@@ -309,7 +320,7 @@ def _serve_socket(owner: RobotDaemonProcess) -> socketserver.UnixStreamServer:
             except ValueError:
                 return
             if request.get("cmd") == "hello" and request.get("persistent"):
-                owner.serve_link(self.connection, self.rfile)
+                owner.serve_link(self.connection, self.rfile, request.get("web_pid"))
                 return
             try:
                 reply = {"ok": True, "result": owner.handle(request)}

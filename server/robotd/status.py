@@ -15,7 +15,7 @@ import numpy as np
 from server.realtime.shm import Seqlock
 
 STATUS_PERIOD_S = 0.02
-DAEMON_STALE_S = 0.15  # no status beat for this long: the daemon is dead or hung (issue 12: within 200 ms)
+DAEMON_STALE_S = 0.1  # no status beat (every 20 ms) for this long: dead or hung (issue 12: within 200 ms)
 ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 REASON_BYTES = 240
 

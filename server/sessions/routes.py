@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import logging
+import time
 from typing import Annotated, Any, Literal
 
 from fastapi import (
@@ -90,6 +91,7 @@ async def emergency_stop(request: Request) -> EmergencyStopResult:
     once the worker confirms it. Who asked is audited afterwards, truthfully (unauthenticated included)."""
     robot: RobotLink | None = request.app.state.robot
     sequence = robot.emergency_stop() if robot is not None else None
+    latched_ns = time.perf_counter_ns()
     token = token_from_request(request, auth_state(request).cookie_name)
     confirmed = robot is not None and await robot.estop_confirmed(sequence)
     asyncio.get_running_loop().run_in_executor(
@@ -98,7 +100,11 @@ async def emergency_stop(request: Request) -> EmergencyStopResult:
     if not confirmed:
         why = robot.status().reason if robot is not None else "this console runs without a robot"
         raise WorkerUnavailableError(f"{NO_ROBOT_PROCESS} ({why})")
-    return EmergencyStopResult(status="emergency stop latched by the robot", utc=dt.datetime.now(dt.UTC))
+    return EmergencyStopResult(
+        status="emergency stop latched by the robot",
+        utc=dt.datetime.now(dt.UTC),
+        confirmed_after_ms=round((time.perf_counter_ns() - latched_ns) * 1e-6, 3),
+    )
 
 
 def _credential(database: Database, state: AuthState, token: str | None) -> tuple[int | None, str]:

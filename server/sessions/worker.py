@@ -54,12 +54,37 @@ class RobotLink(Protocol):
     def active_run(self) -> tuple[int, int] | None: ...
 
 
+DAEMON_SETTINGS = (
+    "database_url",
+    "backend",
+    "robot_file",
+    "control_rate_hz",
+    "can_interface",
+    "can_channel",
+    "can_simulated_drives",
+    "drive_communication_timeout_s",
+    "log_flush_interval_s",
+)
+
+
+def daemon_environment(settings: Settings) -> dict[str, str]:
+    """The settings a daemon started by this web process must share with it (command-line options
+    included), as its environment."""
+    environment = {}
+    for name in DAEMON_SETTINGS:
+        value = getattr(settings, name)
+        if value is not None:
+            environment[f"SSP_REHAB_{name.upper()}"] = str(value)
+    return environment
+
+
 def attach_robot(settings: Settings) -> DaemonLink:
     """This web process's link to the daemon of `settings.robot`; starts the daemon when none runs.
     Returns at once: the link reports "starting" or "absent" until the daemon is ready."""
     paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
-    if ensure_daemon(paths):
+    environment = daemon_environment(settings)
+    if ensure_daemon(paths, environment):
         logger.info("started the robot daemon for %s (log: %s)", settings.robot, paths.log)
-    link = DaemonLink(paths, restart_absent=True)
+    link = DaemonLink(paths, restart_absent=True, environment=environment)
     link.open()
     return link

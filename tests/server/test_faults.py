@@ -108,7 +108,7 @@ def test_defect_3_refused_and_racing_starts_never_change_the_running_run(console
     running_session = console.book()
     running = start_ok(console, running_session)
     before = samples_grow(console, running["id"], 0)
-    other_robot = console.post(f"/sessions/{console.book(robot='twin-2', hour=10)}/start")
+    other_robot = console.post(f"/sessions/{console.book(robot='twin-2')}/start")
     assert other_robot.status_code == 409, other_robot.text
     samples_grow(console, running["id"], before + 2000)  # the refusal did not freeze the recording
     stopped = console.post(f"/sessions/{running_session}/stop")
@@ -116,7 +116,7 @@ def test_defect_3_refused_and_racing_starts_never_change_the_running_run(console
     wait_for(lambda: console.get("/robot/state").json().get("state") in ("stopped", "idle"), EVENT_TIMEOUT_S, "stop")
     console.post("/robot/reset")
 
-    first, second = console.book(hour=11), console.book(hour=12)
+    first, second = console.book(), console.book()
     gate = threading.Barrier(2)
 
     def race(session_id: int) -> object:
@@ -303,3 +303,21 @@ def test_the_estop_during_a_large_upload_is_latched(console: Console) -> None:
     assert console.get("/robot/state").json()["estop_latched"]
     uploader.join(300)
     assert uploaded and not isinstance(uploaded[0], Exception) and uploaded[0].status_code == 201
+
+
+def test_only_the_console_holding_the_session_control_starts_motion(console: Console) -> None:
+    second = Console(console.data_dir)  # a second web process on the same robot daemon
+    second.start()
+    try:
+        run = start_ok(console, console.book())
+        assert console.post(f"/sessions/{run['scheduled_session_id']}/stop").status_code == 200
+        wait_run_ended(console, run["id"])
+        refused = second.post(f"/sessions/{second.book()}/start")
+        assert refused.status_code == 409 and "holds the session control" in refused.text, refused.text
+        console.kill()  # the holder's process ends: its lease with it
+        wait_for(lambda: second.health()["robot"]["state"] == "ready", EVENT_TIMEOUT_S, "the daemon")
+        second.post("/robot/reset")
+        taken = second.post(f"/sessions/{second.book()}/start")
+        assert taken.status_code == 200, f"the lease was not released with its console: {taken.text}"
+    finally:
+        second.stop()
