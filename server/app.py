@@ -206,6 +206,7 @@ def create_app(
                     database=app.state.database,
                     journal_dir=None,
                     chunk_period_s=settings.log_flush_interval_s,
+                    shutdown_wait_s=0.0,  # an in-memory worker has no stop to wait for
                 )
             )
             robot.open()

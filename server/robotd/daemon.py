@@ -10,6 +10,7 @@ append-only journal and hands them to the database writer (server.robotd.writer)
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import logging
 import threading
@@ -25,6 +26,7 @@ from sqlalchemy.orm import Session
 from server.db import Database, write_transaction
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.jsonable import to_jsonable
+from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.journal import RunJournal
 from server.robotd.planner import Planner
 from server.robotd.writer import DatabaseWriter
@@ -41,6 +43,7 @@ RECORD_PERIOD_S = 0.02  # journal writes at least every 20 ms (the issue asks fo
 CHUNK_PERIOD_S = 1.0  # telemetry reaches the database in chunks of about a second
 TAIL_S = 10.0  # telemetry after a run ends still belongs to it: the stop that follows, at most this long
 TAIL_AFTER_DRIVES_OFF_S = 0.3  # and this long once the drives are off
+SHUTDOWN_WAIT_S = 5.0  # for the controlled stop of a run in motion when the daemon is shut down
 WEB_STALL_TOLERANCE_S = 1.0  # a controlling console silent this long is treated as gone
 Listener = Callable[[list[dict[str, Any]]], None]
 
@@ -80,6 +83,7 @@ class RobotDaemon:
         chunk_period_s: float = CHUNK_PERIOD_S,
         tail_s: float = TAIL_S,
         web_stall_tolerance_s: float = WEB_STALL_TOLERANCE_S,
+        shutdown_wait_s: float = SHUTDOWN_WAIT_S,
     ) -> None:
         self.robot = robot
         self.worker = worker
@@ -87,6 +91,7 @@ class RobotDaemon:
         self.journal_dir = journal_dir
         self.planner = planner
         self.chunk_period_s, self.tail_s, self.web_stall_tolerance_s = chunk_period_s, tail_s, web_stall_tolerance_s
+        self.shutdown_wait_s = shutdown_wait_s
         self.writer = DatabaseWriter(database)
         self._lock = threading.RLock()
         self.run: ActiveRun | None = None
@@ -108,9 +113,16 @@ class RobotDaemon:
         self._thread.start()
 
     def shutdown(self, reason: str = "the robot daemon shut down") -> None:
+        """A run in motion is interrupted with a controlled stop, and its stop recorded, before the end."""
         with self._lock:
-            if self.run is not None and self.run.outcome is None:
-                self._end(self.run, RunOutcome.INTERRUPTED, reason)
+            run = self.run
+            if run is not None and run.outcome is None:
+                self._end(run, RunOutcome.INTERRUPTED, reason)
+                with contextlib.suppress(Exception):
+                    self.worker.stop()
+        deadline = time.monotonic() + self.shutdown_wait_s
+        while self.run is not None and self._thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.05)  # the recorder keeps the stop in the run until the drives are off
         self._stop.set()
         self._thread.join(10.0)
         self._record_once()  # what the worker produced last
@@ -191,8 +203,6 @@ class RobotDaemon:
 
     def _confirm(self, run_id: int, session_id: int, controller: str | None) -> None:
         """The run is recorded: what arrived since `start_motion` belongs to it."""
-        from server.realtime.telemetry import TELEMETRY_DTYPE
-
         journal = RunJournal(self.journal_dir, run_id, TELEMETRY_DTYPE) if self.journal_dir else None
         with self._lock:
             run = ActiveRun(run_id, session_id, controller, journal)

@@ -43,10 +43,16 @@ class DaemonLink:
     """One web process's link to the daemon of `paths.robot` (started by `ensure_daemon` if need be)."""
 
     def __init__(
-        self, paths: RobotPaths, *, restart_absent: bool = False, environment: dict[str, str] | None = None
+        self,
+        paths: RobotPaths,
+        *,
+        restart_absent: bool = False,
+        environment: dict[str, str] | None = None,
+        spawned: subprocess.Popen[bytes] | None = None,
     ) -> None:
         self.paths = paths
         self.environment = environment or {}
+        self._spawned = spawned  # the daemon this process started, while it may still be starting
         self.robot = paths.robot
         self.restart_absent = restart_absent
         self._last_spawn_s = time.monotonic()
@@ -190,10 +196,12 @@ class DaemonLink:
 
         if not self.restart_absent or time.monotonic() - self._last_spawn_s < RESPAWN_PERIOD_S:
             return
+        if self._spawned is not None and self._spawned.poll() is None:
+            return  # still starting up (it takes the lock only once its imports are done)
         if not daemon_running(self.paths):
             log.warning("the robot daemon of %s is gone: starting it again", self.robot)
             self._last_spawn_s = time.monotonic()
-            spawn_daemon(self.paths, self.environment)
+            self._spawned = spawn_daemon(self.paths, self.environment)
 
     def _link_once(self) -> None:
         connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -332,11 +340,10 @@ def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -
         )
 
 
-def ensure_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> bool:
-    """Start the robot's daemon unless one runs; True if this call started it."""
+def ensure_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes] | None:
+    """Start the robot's daemon unless one runs; the process if this call started it."""
     from server.robotd.process import daemon_running
 
     if daemon_running(paths):
-        return False
-    spawn_daemon(paths, environment)
-    return True
+        return None
+    return spawn_daemon(paths, environment)

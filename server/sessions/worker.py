@@ -7,6 +7,7 @@ stack fails loudly instead of looking like "no robot"."""
 from __future__ import annotations
 
 import logging
+import sys
 from typing import Any, Protocol
 
 import numpy as np
@@ -16,6 +17,7 @@ from server.robotd.status import RobotPaths, RobotStatus
 from server.settings import Settings
 
 logger = logging.getLogger(__name__)
+WEB_SWITCH_INTERVAL_S = 0.001
 
 
 class WorkerControl(Protocol):
@@ -81,10 +83,13 @@ def daemon_environment(settings: Settings) -> dict[str, str]:
 def attach_robot(settings: Settings) -> DaemonLink:
     """This web process's link to the daemon of `settings.robot`; starts the daemon when none runs.
     Returns at once: the link reports "starting" or "absent" until the daemon is ready."""
+    # Shorter GIL turns keep /estop and /health answering among busy request threads (a large upload).
+    sys.setswitchinterval(min(sys.getswitchinterval(), WEB_SWITCH_INTERVAL_S))
     paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
     environment = daemon_environment(settings)
-    if ensure_daemon(paths, environment):
+    spawned = ensure_daemon(paths, environment)
+    if spawned is not None:
         logger.info("started the robot daemon for %s (log: %s)", settings.robot, paths.log)
-    link = DaemonLink(paths, restart_absent=True, environment=environment)
+    link = DaemonLink(paths, restart_absent=True, environment=environment, spawned=spawned)
     link.open()
     return link
