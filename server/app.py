@@ -1,8 +1,8 @@
 """The console service's FastAPI application factory: `create_app(settings)`.
 
 REST under `/api/v1`, the telemetry WebSocket, OpenAPI at `/docs`, and the clinician web app
-(`frontend_static/`) at `/`. On start it upgrades the database (Alembic), starts the real-time worker
-when one is installed, and runs the session recorder. See docs/service.md.
+(`frontend_static/`) at `/`. On start it upgrades the database (Alembic), attaches to its robot's daemon
+(starting it when none runs, server.robotd) and fans telemetry out to WebSocket clients. See docs/service.md.
 """
 
 from __future__ import annotations
@@ -44,15 +44,20 @@ from server.security import (
     safe_validation_errors,
     shown_value,
 )
-from server.sessions.recorder import SessionRecorder
-from server.sessions.worker import WorkerControl, start_worker
+from server.robotd.daemon import RobotDaemon
+from server.robotd.link import LocalLink
+from server.robotd.process import daemon_running
+from server.robotd.recovery import recover_open_runs
+from server.robotd.status import RobotPaths
+from server.sessions.recorder import TelemetryFanout
+from server.sessions.worker import RobotLink, attach_robot
 from server.settings import Settings
 from server.viz.view import start_view
 
 logger = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
-START_WORKER = object()  # `create_app(worker=...)` default: start the real worker if settings allow it
+START_WORKER = object()  # `create_app(worker=...)` default: attach to the robot daemon if settings allow it
 
 
 class RedactQueryStrings(logging.Filter):
@@ -150,7 +155,7 @@ def _api_router() -> APIRouter:
     from server.reviews.routes import router as reviews_router
     from server.scheduling.routes import router as scheduling_router
     from server.sessions.balance import router as balance_router
-    from server.sessions.routes import estop_router, websocket_router
+    from server.sessions.routes import estop_router, motion_router, websocket_router
     from server.sessions.routes import router as sessions_router
     from server.users.routes import router as users_router
     from server.viz.proxy import router as viz_proxy_router
@@ -160,8 +165,14 @@ def _api_router() -> APIRouter:
 
     @api.get("/health", tags=["health"])
     def health(request: Request) -> dict[str, Any]:
-        """Public liveness check: the service is up; whether a robot is connected."""
-        return {"status": "ok", "robot_connected": request.app.state.worker is not None}
+        """Public liveness check: the service is up, and its robot daemon's state (starting, ready, fault
+        or absent) with the reason; read from shared memory, so it never waits for the robot."""
+        robot: RobotLink | None = request.app.state.robot
+        if robot is None:
+            daemon = {"state": "absent", "reason": "this console runs without a robot"}
+        else:
+            daemon = robot.status().to_dict()
+        return {"status": "ok", "robot_connected": daemon["state"] == "ready", "robot": daemon}
 
     for router in (
         auth_public_router,
@@ -176,6 +187,7 @@ def _api_router() -> APIRouter:
         sessions_router,
         reviews_router,
         reports_router,
+        motion_router,
         estop_router,
         audit_router,
         viz_router,
@@ -206,34 +218,38 @@ def create_app(
             app.state.database = Database(owned_engine)
         await asyncio.to_thread(_announce_first_start, app.state.database, settings)
         started_here = worker is START_WORKER
-        active_worker: WorkerControl | None = (
-            (await asyncio.to_thread(start_worker, settings) if settings.start_worker else None)
-            if started_here
-            else worker
-        )
-        app.state.worker = active_worker
-        app.state.viz = await asyncio.to_thread(start_view, settings, twin, active_worker) if started_here else None
-        recorder_task = None
-        if active_worker is not None:
-            app.state.recorder = SessionRecorder(
-                worker=active_worker,
-                database=app.state.database,
-                telemetry_rate_hz=settings.telemetry_rate_hz,
-                flush_interval_s=settings.log_flush_interval_s,
+        robot: RobotLink | None = None
+        if started_here and settings.start_worker:
+            robot = await asyncio.to_thread(_attach_robot, settings, app.state.database)
+        elif not started_here and worker is not None:  # an in-memory worker (tests): the daemon runs in here
+            robot = LocalLink(
+                RobotDaemon(
+                    robot=settings.robot,
+                    worker=worker,
+                    database=app.state.database,
+                    journal_dir=None,
+                    chunk_period_s=settings.log_flush_interval_s,
+                    shutdown_wait_s=0.0,  # an in-memory worker has no stop to wait for
+                )
             )
-            recorder_task = asyncio.create_task(app.state.recorder.run_forever())
+            robot.open()
+        app.state.robot = robot
+        app.state.viz = await asyncio.to_thread(start_view, settings, twin, robot) if started_here else None
+        fanout_task = None
+        if robot is not None:
+            app.state.fanout = TelemetryFanout(robot, settings.telemetry_rate_hz)
+            fanout_task = asyncio.create_task(app.state.fanout.run_forever())
         try:
             yield
         finally:
             if app.state.viz is not None:
                 await asyncio.to_thread(app.state.viz.stop)
-            if recorder_task is not None:
-                recorder_task.cancel()
+            if fanout_task is not None:
+                fanout_task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
-                    await recorder_task
-                await asyncio.to_thread(app.state.recorder.finish_run)
-            if started_here and active_worker is not None:
-                await asyncio.to_thread(active_worker.shutdown)
+                    await fanout_task
+            if robot is not None:
+                await asyncio.to_thread(robot.close)  # a daemon keeps running; an in-process one stops
             if owned_engine is not None:
                 owned_engine.dispose()
 
@@ -256,8 +272,8 @@ def create_app(
         cookie_name=settings.cookie_name,
     )
     app.state.database = database
-    app.state.worker = None
-    app.state.recorder = None
+    app.state.robot = None
+    app.state.fanout = None
     app.state.viz = None
     _security_middleware(app, settings)
     _error_handlers(app)
@@ -329,6 +345,16 @@ def _install_audit_journal(app: FastAPI, settings: Settings) -> None:
                 await asyncio.to_thread(journal.close)
 
     app.router.lifespan_context = lifespan_with_journal
+
+
+def _attach_robot(settings: Settings, database: Database) -> RobotLink:
+    """Runs a crash left open are closed first when no daemon runs (it would close them itself)."""
+    paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
+    if not daemon_running(paths):
+        closed = recover_open_runs(database=database, robot=settings.robot, journal_dir=paths.journal)
+        if closed:
+            logger.warning("closed runs left open by a crash as interrupted: %s", closed)
+    return attach_robot(settings)
 
 
 def _version() -> str:

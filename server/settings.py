@@ -34,7 +34,20 @@ class Settings(BaseSettings):
     can_simulated_drives: int = Field(
         default=0, ge=0, le=12, description="Simulated CiA 402 drives on the same bus (commissioning without a robot)."
     )
-    start_worker: bool = Field(default=True, description="Start the real-time worker with the service.")
+    start_worker: bool = Field(
+        default=True, description="Attach to the robot daemon (and start it when none runs) with the service."
+    )
+    robot: str = Field(
+        default="twin-1",
+        pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$",
+        description="The robot this console controls: its daemon runs motion for bookings on this robot.",
+    )
+    drive_communication_timeout_s: float | None = Field(
+        default=None,
+        gt=0,
+        le=5.0,
+        description="Simulated drives' (sim, kinematic) communication-loss stop; default: the HAL's own (50 ms).",
+    )
 
     secret_key: SecretStr | None = Field(
         default=None, description="Signs access tokens; default: generated in data_dir."

@@ -57,13 +57,26 @@ def login(data: LoginRequest, request: Request, response: Response, session: Ses
     return LoginResult(access_token=token, expires_at=expires_at, user=UserOut.model_validate(user))
 
 
-@router.post("/logout", status_code=status.HTTP_204_NO_CONTENT)
+@router.post(
+    "/logout",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={409: {"description": "A session is in motion on this console's robot: stop it first"}},
+)
 def logout(
     request: Request,
     session: SessionDep,
     user: CurrentUser,
     claims: Annotated[TokenClaims, Depends(authenticated_claims)],
 ) -> Response:
+    """Refused while this console's robot runs a session (issue 12, defect 12): stop or pause it first."""
+    robot = request.app.state.robot
+    active = robot.active_run() if robot is not None else None
+    if active is not None:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            detail=f"robot {robot.robot!r} is in motion (run {active[0]}, session {active[1]}): stop the session "
+            "before logging out. The emergency stop on this page works logged out as well.",
+        )
     state = auth_state(request)
     state.revoke(claims.session_id)
     service.revoke_login_session(session=session, session_id=claims.session_id, user_id=user.id)

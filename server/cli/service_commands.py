@@ -1,4 +1,5 @@
-"""`ssp-rehab serve` (the console service) and `ssp-rehab create-user` (clinician accounts)."""
+"""`ssp-rehab serve` (the console service), `ssp-rehab robot` (a robot's daemon, which `serve` starts
+when none runs) and `ssp-rehab create-user` (clinician accounts)."""
 
 from __future__ import annotations
 
@@ -38,7 +39,10 @@ def register(app: typer.Typer) -> None:
         data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
         backend: str | None = typer.Option(None, "--backend", help="Robot backend: sim (default), kinematic, canopen."),
         robot_file: Path | None = ROBOT_OPTION,
-        no_robot: bool = typer.Option(False, "--no-robot", help="Do not start the real-time worker."),
+        robot_name: str | None = typer.Option(
+            None, "--robot-name", help="The robot this console controls, as bookings name it (default twin-1)."
+        ),
+        no_robot: bool = typer.Option(False, "--no-robot", help="Do not attach to (or start) a robot daemon."),
         can_interface: str | None = typer.Option(None, "--can-interface", help="python-can interface (canopen)."),
         can_channel: str | None = typer.Option(None, "--can-channel", help="CAN channel (canopen), e.g. can0."),
         can_simulate: int | None = typer.Option(
@@ -56,6 +60,7 @@ def register(app: typer.Typer) -> None:
             settings = _settings(
                 data_dir=data_dir,
                 backend=backend,
+                robot=robot_name,
                 robot_file=robot_file,
                 start_worker=False if no_robot else None,
                 can_interface=can_interface,
@@ -82,6 +87,38 @@ def register(app: typer.Typer) -> None:
         # uvicorn's own default would trust it from loopback. log_config=None keeps the structured (JSON)
         # logging configured above for uvicorn's loggers too.
         uvicorn.run(application, host=host, port=port, log_level="info", proxy_headers=False, log_config=None)
+
+    @app.command("robot")
+    def robot_daemon(
+        robot: str = typer.Option("twin-1", "--robot", help="The robot's name, as bookings name it."),
+        data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+        backend: str | None = typer.Option(None, "--backend", help="Robot backend: sim (default), kinematic, canopen."),
+        robot_file: Path | None = typer.Option(
+            None, "--robot-file", help="Robot description TOML (default: SSP_REHAB_ROBOT_FILE or the paper's robot)."
+        ),
+        as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
+    ) -> None:
+        """Run the robot daemon: the real-time worker, heartbeat relay, HAL, planning process and recorder
+        of one robot. It owns and records every run; `serve` starts it when none runs."""
+        from server.robotd.process import AlreadyRunning, run_robot_daemon
+
+        if backend is not None and backend not in BACKENDS:
+            raise fail(f"--backend = {backend!r}: must be one of {', '.join(BACKENDS)}", as_json=as_json)
+        try:
+            settings = _settings(data_dir=data_dir, backend=backend, robot=robot, robot_file=robot_file)
+        except ValidationError as error:
+            raise fail(_validation_message(error), as_json=as_json) from error
+        logging.basicConfig(level=logging.INFO, format="%(asctime)s robotd %(levelname)s [%(name)s] %(message)s")
+        try:
+            code = run_robot_daemon(settings, robot)
+        except AlreadyRunning as error:
+            raise fail(str(error), as_json=as_json) from error
+        emit(
+            {"robot": robot, "exit_code": code},
+            as_json=as_json,
+            human=lambda r: console.print(f"robot daemon {r['robot']} ended"),
+        )
+        raise typer.Exit(code)
 
     @app.command("create-user")
     def create_user(

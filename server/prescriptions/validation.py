@@ -53,7 +53,13 @@ def _refusal(field: str, value: Any, error: Exception) -> InvalidFieldError:
     )
 
 
+CSV_CUE_MAX_BYTES = 32 * 1024 * 1024  # a csv_replay cue's text; parsing it is bounded before it starts
+
+
 def _validated_cue(field: str, cue: dict[str, Any]) -> dict[str, Any]:
+    text = cue.get("csv") if isinstance(cue, dict) else None
+    if isinstance(text, str) and len(text) > CSV_CUE_MAX_BYTES:
+        raise InvalidFieldError(f"{field}.csv", f"{len(text)} characters", f"must be at most {CSV_CUE_MAX_BYTES} bytes")
     cues = _core_module("core.cues")
     if cues is not None:
         try:

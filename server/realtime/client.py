@@ -180,6 +180,15 @@ class WorkerClient:
         result: dict[str, Any] = self._send("load", {"prescription": prescription, "patient": patient}, timeout_s=300.0)
         return result
 
+    def load_plan(self, plan: Any, report: dict[str, Any]) -> dict[str, Any]:
+        """Load a plan already made and checked elsewhere (the daemon's planning process)."""
+        result: dict[str, Any] = self._send("load_plan", {"plan": plan, "report": report}, timeout_s=30.0)
+        return result
+
+    def service_lost(self, reason: str) -> None:
+        """The console controlling the run is gone: a controlled stop now (the watchdog's reaction, sooner)."""
+        self._send("service_lost", {"reason": reason})
+
     def start_motion(self) -> None:
         self._send("start")
 
@@ -198,8 +207,14 @@ class WorkerClient:
     def emergency_stop(self) -> None:
         """Latch an emergency stop: the shared-memory flag first (read every tick), the pipe second."""
         self.control.request_estop(time.perf_counter_ns())
-        with contextlib.suppress(WorkerError):  # the flag is the primary path
-            self._send("estop", None, expect_reply=False)
+        # The flag is the primary path; the pipe is a second one only when no other command holds it (a
+        # blocking wait here would put the caller behind that command).
+        if self._reply_lock.acquire(blocking=False):
+            try:
+                with contextlib.suppress(WorkerError):
+                    self._send_unlocked("estop", None)
+            finally:
+                self._reply_lock.release()
 
     # --- state and streams ------------------------------------------------------------------------
 
@@ -221,16 +236,20 @@ class WorkerClient:
     def _send(self, name: str, payload: Any = None, *, expect_reply: bool = True, timeout_s: float = 5.0) -> Any:
         if self.process is None:
             raise WorkerError(f"{name}: the worker is not started")
-        request_id = next(self._ids)
         with self._reply_lock:
-            try:
-                with self._send_lock:
-                    self._commands.send((request_id, name, payload))
-            except (OSError, EOFError) as error:
-                raise WorkerError(f"{name}: the worker is gone ({error})") from error
+            request_id = self._send_unlocked(name, payload)
             if not expect_reply:
                 return None
             return self._await_reply(name, request_id, timeout_s)
+
+    def _send_unlocked(self, name: str, payload: Any) -> int:
+        request_id = next(self._ids)
+        try:
+            with self._send_lock:
+                self._commands.send((request_id, name, payload))
+        except (OSError, EOFError) as error:
+            raise WorkerError(f"{name}: the worker is gone ({error})") from error
+        return request_id
 
     def _await_reply(self, name: str, request_id: int, timeout_s: float) -> Any:
         deadline = time.monotonic() + timeout_s

@@ -6,8 +6,10 @@ per tick; the pipe closing means the service is gone) â†’ `TickPipeline.tick` â†
 telemetry ring and behind the seqlock. Replies go back on their own pipe; events go into their own
 shared-memory ring at once.
 
-A prescription is planned and checked offline here, by the worker, because the worker alone decides
-motion; that only happens with the drives off, and the loop's deadline grid restarts afterwards.
+In the robot daemon a prescription is planned and checked by the daemon's planning process, and the
+worker only takes the finished plan (`load_plan`), so the loop keeps running, and an emergency stop is
+latched, during a long check. `load` (plan and check here, with the drives off) remains for direct use
+of `WorkerClient`.
 The worker exits on `shutdown` or when the service is gone, but only once the drives are off.
 """
 
@@ -28,6 +30,7 @@ from server.realtime.loop import FixedRateLoop, configure_realtime, freeze_garba
 from server.realtime.pipeline import TickPipeline, compile_tick_path
 from server.realtime.prescription import (
     PrescriptionError,
+    PrescriptionPlan,
     PrescriptionRejected,
     check_plan,
     plan_prescription,
@@ -131,6 +134,11 @@ class Worker:
             result: Any = None
             if name == "load":
                 result = self._load(payload["prescription"], payload.get("patient"))
+            elif name == "load_plan":
+                result = self._load_plan(payload["plan"], payload["report"])
+            elif name == "service_lost":  # the daemon lost the console that controls the run
+                self.emit("service_lost", payload or {})
+                pipeline.service_lost()
             elif name in ("start", "pause", "resume", "stop", "reset"):
                 getattr(pipeline, name)()
             elif name == "shutdown":
@@ -151,6 +159,15 @@ class Worker:
             self._reply(request_id, False, {"type": "TransitionRefused", "message": str(refused)})
         except Exception as error:  # a bad command must never take the loop down
             self._reply(request_id, False, {"type": type(error).__name__, "message": str(error)})
+
+    def _load_plan(self, plan: PrescriptionPlan, report: dict[str, Any]) -> dict[str, Any]:
+        """Take a plan the daemon's planning process made and checked: the loop never stops for it."""
+        try:
+            self.pipeline.load(plan)
+        finally:
+            self.loop.rebase()  # building the segments' streaming objects may take a few periods
+        self.emit("prescription_checked", report)
+        return report
 
     def _load(self, prescription: dict[str, Any], patient: dict[str, Any] | None) -> dict[str, Any]:
         self.pipeline.supervisor.require("load", *LOAD_STATES)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import enum
 from typing import Any
 
 from sqlalchemy import JSON, BigInteger, Float, ForeignKey, Index, LargeBinary, String, UniqueConstraint
@@ -10,7 +11,29 @@ from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base, UTCDateTime, utc_now
 
-RUN_STATES = ("running", "paused", "ended")
+
+class RunState(enum.StrEnum):
+    """A run's state: only the robot daemon changes it (server.robotd), and only `end_run` ends it."""
+
+    RUNNING = "running"
+    PAUSED = "paused"
+    ENDED = "ended"
+
+
+class RunOutcome(enum.StrEnum):
+    """Why a run ended."""
+
+    COMPLETED = "completed"
+    STOPPED = "stopped"  # by the operator's stop command
+    EMERGENCY_STOP = "emergency_stop"
+    FAULT = "fault"
+    FALL = "fall"
+    LIMIT_HIT = "limit_hit"
+    INTERRUPTED = "interrupted"  # the console, the daemon or the worker was lost while it ran
+
+
+ACTIVE_STATES = (RunState.RUNNING, RunState.PAUSED)
+RUN_STATES = tuple(state.value for state in RunState)
 
 
 class SessionRun(Base):

@@ -3,15 +3,14 @@ events, the telemetry WebSocket, and session-log export (per run and bulk, for s
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
-import importlib
 import logging
-from types import ModuleType
+import time
 from typing import Annotated, Any, Literal
 
 from fastapi import (
     APIRouter,
-    BackgroundTasks,
     Depends,
     HTTPException,
     Query,
@@ -25,15 +24,18 @@ from fastapi.concurrency import run_in_threadpool
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from server import exports
 from server.api_types import MAX_ID, NO_NUL_PATTERN, IdPath
 from server.audit import service as audit
 from server.auth.dependencies import (
+    AuthState,
     CurrentUser,
     auth_state,
     authenticated_claims,
     claims_for_token,
     current_user,
     token_from_request,
+    unauthorized,
     user_for_claims,
 )
 from server.auth.security import TokenClaims
@@ -41,20 +43,23 @@ from server.db import Database, SessionDep, writes
 from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
 from server.jsonable import to_jsonable
 from server.reviews.service import refuse_start_while_unacknowledged
+from server.robotd.link import NO_ROBOT_PROCESS
 from server.scheduling.service import get_booking
 from server.sessions import logs, service
 from server.sessions.models import SessionRun
 from server.sessions.schemas import EmergencyStopResult, SessionEventOut, SessionRunOut
-from server.sessions.worker import WorkerControl
+from server.sessions.worker import RobotLink
 
 logger = logging.getLogger(__name__)
 
 router = APIRouter(tags=["sessions"], dependencies=[Depends(current_user)])
-# The emergency stop checks the token without the database (server.auth.dependencies).
+# Motion commands hold no database session while the daemon works: it writes the run meanwhile.
+motion_router = APIRouter(tags=["sessions"])
+# The emergency stop needs no login at all: the console page must always be able to stop motion.
 estop_router = APIRouter(tags=["sessions"])
 websocket_router = APIRouter()
 
-NO_ROBOT = "no robot connected: the real-time worker is not running (records, schedules and exports still work)"
+NO_ROBOT = "no robot connected: the robot daemon is not attached (records, schedules and exports still work)"
 ExportFormat = Literal["csv", "parquet", "json", "c3d"]
 LAST_EXPORT_DAY = dt.date.max - dt.timedelta(days=1)  # a range ends at the next day's midnight
 
@@ -64,62 +69,118 @@ def _audit(*, session: Session, **entry: Any) -> None:
     audit.record(session=session, **entry)
 
 
-def require_worker(request: Request) -> WorkerControl:
-    worker: WorkerControl | None = request.app.state.worker
-    if worker is None:
+def require_robot(request: Request) -> RobotLink:
+    robot: RobotLink | None = request.app.state.robot
+    if robot is None:
         raise WorkerUnavailableError(NO_ROBOT)
-    return worker
+    robot_status = robot.status()
+    if not robot_status.ready:
+        raise WorkerUnavailableError(f"robot {robot.robot!r} is {robot_status.state.label}: {robot_status.reason}")
+    return robot
 
 
-WorkerDep = Annotated[WorkerControl, Depends(require_worker)]
+RobotDep = Annotated[RobotLink, Depends(require_robot)]
 
 
-@estop_router.post("/estop", response_model=EmergencyStopResult, responses={503: {"description": "No robot"}})
-async def emergency_stop(
-    request: Request, background: BackgroundTasks, claims: Annotated[TokenClaims, Depends(authenticated_claims)]
-) -> EmergencyStopResult:
-    """Any authenticated user, always, one call. Runs on the event loop and reaches the worker before any
-    database work (that is recorded afterwards), so a busy service cannot delay it."""
-    worker: WorkerControl | None = request.app.state.worker
-    if worker is None:
-        raise WorkerUnavailableError(NO_ROBOT)
-    worker.emergency_stop()
-    recorder = request.app.state.recorder
-    if recorder is not None:
-        recorder.end_run_after_tail()
-    database: Database = request.app.state.database
-    background.add_task(_record_emergency_stop, database, claims.user_id, worker)
-    return EmergencyStopResult(status="emergency stop sent to the robot", utc=dt.datetime.now(dt.UTC))
-
-
-def _record_emergency_stop(database: Database, user_id: int, worker: WorkerControl) -> None:
-    with database.session() as session:
-        service.record_emergency_stop(session=session, user_id=user_id, worker=worker)
-
-
-@router.post("/sessions/{session_id}/start", response_model=SessionRunOut, responses={503: {"description": "No robot"}})
-def start_session(
-    session_id: IdPath, request: Request, session: SessionDep, user: CurrentUser, worker: WorkerDep
-) -> SessionRunOut:
-    """Loads the session's prescription version into the worker and starts motion; records a new run.
-    Refused (409) while the robot's last run ended in an unacknowledged fall, fault or limit stop."""
-    refuse_start_while_unacknowledged(session=session, session_id=session_id)
-    run = service.start_run(
-        session=session, session_id=session_id, worker=worker, actor_id=user.id, recorder=request.app.state.recorder
+@estop_router.post(
+    "/estop",
+    response_model=EmergencyStopResult,
+    responses={503: {"description": "No robot process received the stop: the drives stop on their own heartbeat loss"}},
+)
+async def emergency_stop(request: Request) -> EmergencyStopResult:
+    """Anyone at the console, logged in or not, always, one call. The first statement latches the stop in
+    the worker's shared memory, before any await, lock, database work or message; the answer is 200 only
+    once the worker confirms it. Who asked is audited afterwards, truthfully (unauthenticated included)."""
+    robot: RobotLink | None = request.app.state.robot
+    sequence = robot.emergency_stop() if robot is not None else None
+    latched_ns = time.perf_counter_ns()
+    token = token_from_request(request, auth_state(request).cookie_name)
+    confirmed = robot is not None and await robot.estop_confirmed(sequence)
+    asyncio.get_running_loop().run_in_executor(
+        None, _record_emergency_stop, request.app.state.database, auth_state(request), robot, token, confirmed
     )
-    return SessionRunOut.model_validate(run)
+    if not confirmed:
+        why = robot.status().reason if robot is not None else "this console runs without a robot"
+        raise WorkerUnavailableError(f"{NO_ROBOT_PROCESS} ({why})")
+    return EmergencyStopResult(
+        status="emergency stop latched by the robot",
+        utc=dt.datetime.now(dt.UTC),
+        confirmed_after_ms=round((time.perf_counter_ns() - latched_ns) * 1e-6, 3),
+    )
+
+
+def _credential(database: Database, state: AuthState, token: str | None) -> tuple[int | None, str]:
+    """(user id, what the request proved): a user only for a valid, unrevoked login of an active account."""
+    if not token:
+        return None, "none"
+    claims = claims_for_token(token, state)
+    if claims is None:
+        return None, "invalid, expired or revoked token"
+    with database.session() as session:
+        user = user_for_claims(session, claims)
+        return (user.id, "login session") if user is not None else (None, "ended login session or inactive account")
+
+
+def _record_emergency_stop(
+    database: Database, state: AuthState, robot: RobotLink | None, token: str | None, confirmed: bool
+) -> None:
+    try:
+        user_id, credential = _credential(database, state, token)
+        if confirmed and robot is not None:
+            try:
+                robot.note_emergency_stop(user_id, user_id is not None, credential)
+                return
+            except Exception:
+                logger.exception("the robot daemon did not take the emergency stop's record; the console keeps it")
+        credential += "" if confirmed else "; not received: no robot process"
+        with database.session() as session:
+            service.record_emergency_stop(
+                session=session,
+                user_id=user_id,
+                authenticated=user_id is not None,
+                credential=credential,
+                run_ids=[],
+                clock=service.NO_CLOCK,
+            )
+    except Exception:
+        logger.exception("the emergency stop could not be audited")
+
+
+def acting_user_id(request: Request, claims: Annotated[TokenClaims, Depends(authenticated_claims)]) -> int:
+    """The logged-in user, checked in a database session of its own that ends before the command."""
+    database: Database = request.app.state.database
+    with database.session() as session:
+        user = user_for_claims(session, claims)
+        if user is None:
+            raise unauthorized("login session ended: log in again")
+        return user.id
+
+
+ActingUserId = Annotated[int, Depends(acting_user_id)]
+
+
+def _run_out(request: Request, run_id: int) -> SessionRunOut:
+    database: Database = request.app.state.database
+    with database.session() as session:
+        return SessionRunOut.model_validate(service.get_run(session=session, run_id=run_id))
+
+
+@motion_router.post(
+    "/sessions/{session_id}/start", response_model=SessionRunOut, responses={503: {"description": "No robot"}}
+)
+def start_session(
+    session_id: IdPath, request: Request, session: SessionDep, user_id: ActingUserId, robot: RobotDep
+) -> SessionRunOut:
+    """The robot daemon checks the booking, plans and checks its prescription version, starts motion and
+    records a new run (with the run id it chose). Refused (409) while the robot's last run ended in an
+    unacknowledged fall, fault or limit stop."""
+    refuse_start_while_unacknowledged(session=session, session_id=session_id)
+    return _run_out(request, robot.start_session(session_id, user_id))
 
 
 def _control(command: service.RunCommand) -> Any:
-    def control(
-        session_id: IdPath, request: Request, session: SessionDep, user: CurrentUser, worker: WorkerDep
-    ) -> SessionRunOut:
-        run = service.control_run(
-            session=session, session_id=session_id, command=command, worker=worker, actor_id=user.id
-        )
-        if command == "stop" and request.app.state.recorder is not None:
-            request.app.state.recorder.end_run_after_tail()
-        return SessionRunOut.model_validate(run)
+    def control(session_id: IdPath, request: Request, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
+        return _run_out(request, robot.control(session_id, command, user_id))
 
     control.__name__ = f"{command}_session"
     control.__doc__ = f"{command.capitalize()} the active run of this session."
@@ -127,7 +188,7 @@ def _control(command: service.RunCommand) -> Any:
 
 
 for _command in ("pause", "resume", "stop"):
-    router.add_api_route(
+    motion_router.add_api_route(
         f"/sessions/{{session_id}}/{_command}",
         _control(_command),
         methods=["POST"],
@@ -136,24 +197,22 @@ for _command in ("pause", "resume", "stop"):
     )
 
 
-@router.get("/robot/state", responses={503: {"description": "No robot"}})
-def robot_state(worker: WorkerDep) -> dict[str, Any]:
-    """The worker's latest state: supervisor state, stance pose, slider positions, drive forces, tick stats."""
-    state: dict[str, Any] = to_jsonable(worker.latest_state())
+@router.get("/robot/state", responses={503: {"description": "No robot, or its daemon is starting, faulted or gone"}})
+def robot_state(robot: RobotDep) -> dict[str, Any]:
+    """The worker's latest state: supervisor state, stance pose, slider positions, drive forces, tick stats,
+    and the robot daemon's own status."""
+    state: dict[str, Any] = to_jsonable(robot.latest_state())
+    state["robot"] = robot.status().to_dict()
     return state
 
 
-@router.post(
+@motion_router.post(
     "/robot/reset",
     responses={503: {"description": "No robot"}, 409: {"description": "Nothing to reset (not stopped or faulted)"}},
 )
-def reset_robot(session: SessionDep, user: CurrentUser, worker: WorkerDep) -> dict[str, str]:
+def reset_robot(user_id: ActingUserId, robot: RobotDep) -> dict[str, str]:
     """Clears a latched emergency stop or fault. Never restarts motion."""
-    try:
-        worker.reset()
-    except Exception as error:  # the worker's refusal (e.g. reset while idle) is the client's conflict
-        raise service.refused(error) from error
-    service.record_robot_command(session=session, user_id=user.id, command="reset", worker=worker)
+    robot.reset(user_id)
     return {"status": "reset sent to the robot"}
 
 
@@ -175,14 +234,7 @@ def list_events(run_id: IdPath, session: SessionDep) -> list[SessionEventOut]:
 # --- export --------------------------------------------------------------------------------------
 
 
-def _exports() -> ModuleType:
-    try:
-        return importlib.import_module("server.exports")
-    except ImportError as error:
-        raise HTTPException(status.HTTP_501_NOT_IMPLEMENTED, detail="export formats are not installed") from error
-
-
-def _log_for_run(request: Request, session: Any, run_id: int, identify: bool, include_free_text: bool = False) -> Any:
+def _log_for_run(request: Request, session: Any, run_id: int, identify: bool) -> Any:
     return logs.session_log(
         session=session,
         run_id=run_id,
@@ -217,7 +269,6 @@ def export_session(
     run = session.scalars(query.limit(1)).first()
     if run is None:
         raise NotFoundError(f"session {session_id} run", run_id if run_id is not None else "(any)")
-    exports = _exports()
     try:
         body, media_type, filename = exports.export_session(
             _log_for_run(request, session, run.id, identify), export_format
@@ -257,13 +308,7 @@ def export_study(
     rows = logs.study_run_ids(session=session, start=from_date, end=to_date, diagnosis=diagnosis)
     if not rows:
         raise NotFoundError("recorded session runs in that range", f"{from_date}..{to_date}")
-    exports = _exports()
-    selection: dict[str, Any] = {
-        "from_date": str(from_date),
-        "to_date": str(to_date),
-        "diagnosis": diagnosis,
-        "include_free_text": include_free_text,
-    }
+    selection = {"from_date": str(from_date), "to_date": str(to_date), "diagnosis": diagnosis}
     try:
         study = [_log_for_run(request, session, r, False, include_free_text) for r, _ in rows]
         if layout == "parquet_dataset":
@@ -330,16 +375,16 @@ async def telemetry(websocket: WebSocket, session_id: int) -> None:
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=refusal)
         return
     await websocket.accept()
-    recorder = websocket.app.state.recorder
-    if recorder is None:
+    fanout = websocket.app.state.fanout
+    if fanout is None:
         await websocket.send_json({"type": "error", "detail": NO_ROBOT})
         await websocket.close(code=status.WS_1013_TRY_AGAIN_LATER, reason="no robot connected")
         return
-    queue = recorder.subscribe()
+    queue = fanout.subscribe()
     try:
         while True:
             await websocket.send_text(await queue.get())
     except (WebSocketDisconnect, RuntimeError):
         pass  # the client went away
     finally:
-        recorder.unsubscribe(queue)
+        fanout.unsubscribe(queue)

@@ -37,3 +37,4 @@ class SessionEventOut(ResponseModel):
 class EmergencyStopResult(ResponseModel):
     status: str
     utc: dt.datetime
+    confirmed_after_ms: float | None = None  # from storing the latched flag to the worker showing it latched

@@ -1,15 +1,14 @@
-"""Run control: start, pause, resume and stop a scheduled session on the robot, recording the run, its
-events and an audit entry for every motion command.
-
-The worker is commanded inside the transaction that records the command, so a refused command leaves
-nothing written, and a run that cannot be recorded is stopped again.
+"""Run records: the robot daemon (server.robotd) decides every change of a run and records it here, with
+the run id it chose. A run starts with `record_start`, changes with `record_command` and ends only
+through `end_run`, whatever ended it (stop, emergency stop, completion, fault, fall, interruption).
+Web processes read runs and events; they never write them.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import logging
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -19,23 +18,21 @@ from server.db import writes
 from server.errors import ConflictError, InvalidFieldError, NotFoundError
 from server.patients.models import Patient
 from server.prescriptions.models import PrescriptionVersion
+from server.scheduling.models import ScheduledSession
 from server.scheduling.service import get_booking
-from server.sessions.models import SessionEvent, SessionRun
-from server.sessions.worker import WorkerControl
-
-if TYPE_CHECKING:
-    from server.sessions.recorder import SessionRecorder
+from server.sessions.models import ACTIVE_STATES, RunOutcome, RunState, SessionEvent, SessionRun
 
 logger = logging.getLogger(__name__)
 
-ACTIVE_STATES = ("running", "paused")
 RunCommand = Literal["pause", "resume", "stop"]
 # Which run state each command needs, and the state it leaves.
-TRANSITIONS: dict[str, tuple[tuple[str, ...], str]] = {
-    "pause": (("running",), "paused"),
-    "resume": (("paused",), "running"),
-    "stop": (ACTIVE_STATES, "ended"),
+TRANSITIONS: dict[str, tuple[tuple[RunState, ...], RunState]] = {
+    "pause": ((RunState.RUNNING,), RunState.PAUSED),
+    "resume": ((RunState.PAUSED,), RunState.RUNNING),
+    "stop": (ACTIVE_STATES, RunState.ENDED),
 }
+Clock = tuple[int | None, float | None]  # the worker's tick and tick time, to stamp console events
+NO_CLOCK: Clock = (None, None)
 
 
 def get_run(*, session: Session, run_id: int) -> SessionRun:
@@ -68,27 +65,18 @@ def patient_for_worker(patient: Patient) -> dict[str, Any]:
     return {"body_mass_kg": patient.body_mass_kg, "height_m": patient.height_m}
 
 
-def worker_clock(worker: WorkerControl) -> tuple[int | None, float | None]:
-    """The worker's current tick and tick time, for stamping console commands; (None, None) if unknown."""
-    try:
-        state = worker.latest_state()
-    except Exception:
-        return None, None
-    tick, time_s = state.get("tick"), state.get("time_s")
-    return (int(tick) if tick is not None else None), (float(time_s) if time_s is not None else None)
-
-
 def add_event(
     *,
     session: Session,
     run_id: int | None,
     kind: str,
     user_id: int | None,
-    worker: WorkerControl | None,
+    clock: Clock = NO_CLOCK,
     details: dict[str, Any] | None = None,
     detector: str = "console",
+    utc: dt.datetime | None = None,
 ) -> SessionEvent:
-    tick, tick_time_s = worker_clock(worker) if worker is not None else (None, None)
+    tick, tick_time_s = clock
     event = SessionEvent(
         run_id=run_id,
         kind=kind,
@@ -97,6 +85,7 @@ def add_event(
         detector=detector,
         details=details or {},
         user_id=user_id,
+        utc=utc or dt.datetime.now(dt.UTC),
     )
     session.add(event)
     return event
@@ -116,73 +105,39 @@ def refused(error: Exception) -> Exception:
     return ConflictError(f"the robot refused the command: {error}")
 
 
-def start_run(
-    *, session: Session, session_id: int, worker: WorkerControl, actor_id: int, recorder: SessionRecorder | None
-) -> SessionRun:
-    """Check, command the worker, then record: the SQLite write lock is not held while the worker loads
-    (and checks) the prescription. If the run cannot be recorded, the robot is stopped again."""
+def startable(
+    *, session: Session, session_id: int, robot: str
+) -> tuple[ScheduledSession, PrescriptionVersion, Patient]:
+    """The booking, its prescription version and patient, if `robot` may start it now; else the refusal."""
     booking = get_booking(session=session, session_id=session_id)
     if booking.status == "cancelled":
         raise ConflictError(f"session {session_id} is cancelled", field="status")
-    _refuse_if_busy(session, booking.robot)
-    version = session.get(PrescriptionVersion, booking.prescription_version_id)
-    patient = session.get(Patient, booking.patient_id)
-    assert version is not None and patient is not None  # foreign keys guarantee both
-    session.commit()  # ends the read; nothing was written
-    if recorder is not None:
-        recorder.begin_run(booking.id)
-    try:
-        worker.load_prescription(version.content, patient_for_worker(patient))
-        worker.start_motion()
-    except Exception as error:
-        logger.warning("worker refused to start session %d: %s", session_id, type(error).__name__)
-        if recorder is not None:
-            recorder.abandon_run()
-        raise refused(error) from error
-    try:
-        run = _record_start(
-            session=session,
-            booking_id=booking.id,
-            robot=booking.robot,
-            patient_id=booking.patient_id,
-            version_id=version.id,
-            worker=worker,
-            actor_id=actor_id,
+    if booking.robot != robot:
+        raise ConflictError(
+            f"session {session_id} is booked on robot {booking.robot!r}; this console controls robot {robot!r}",
+            field="robot",
         )
-    except Exception:
-        # Motion without a record of it is not allowed: stop the robot, then report the failure.
-        worker.stop()
-        if recorder is not None:
-            recorder.abandon_run()
-        raise
-    if recorder is not None:
-        recorder.confirm_run(run.id)
-    return run
-
-
-def _refuse_if_busy(session: Session, robot: str) -> None:
     busy = active_run_on_robot(session=session, robot=robot)
     if busy is not None:
         raise ConflictError(f"robot {robot!r} is busy with run {busy.id} (session {busy.scheduled_session_id})")
+    version = session.get(PrescriptionVersion, booking.prescription_version_id)
+    patient = session.get(Patient, booking.patient_id)
+    assert version is not None and patient is not None  # foreign keys guarantee both
+    return booking, version, patient
 
 
 @writes
-def _record_start(
-    *,
-    session: Session,
-    booking_id: int,
-    robot: str,
-    patient_id: int,
-    version_id: int,
-    worker: WorkerControl,
-    actor_id: int,
+def record_start(
+    *, session: Session, booking_id: int, robot: str, patient_id: int, version_id: int, clock: Clock, actor_id: int
 ) -> SessionRun:
-    _refuse_if_busy(session, robot)  # again, inside the write lock: another start may have won the race
+    busy = active_run_on_robot(session=session, robot=robot)  # inside the write lock
+    if busy is not None:
+        raise ConflictError(f"robot {robot!r} is busy with run {busy.id} (session {busy.scheduled_session_id})")
     run = SessionRun(
         scheduled_session_id=booking_id,
         prescription_version_id=version_id,
         robot=robot,
-        state="running",
+        state=RunState.RUNNING.value,
         started_by_id=actor_id,
     )
     session.add(run)
@@ -192,7 +147,7 @@ def _record_start(
         run_id=run.id,
         kind="start",
         user_id=actor_id,
-        worker=worker,
+        clock=clock,
         details={"prescription_version_id": version_id},
     )
     audit.record(
@@ -206,60 +161,99 @@ def _record_start(
     return run
 
 
-@writes
-def control_run(
-    *, session: Session, session_id: int, command: RunCommand, worker: WorkerControl, actor_id: int
-) -> SessionRun:
-    get_booking(session=session, session_id=session_id)
-    run = session.scalar(
-        select(SessionRun)
-        .where(SessionRun.scheduled_session_id == session_id, SessionRun.state.in_(ACTIVE_STATES))
-        .limit(1)
-    )
+def check_command(run_state: RunState | None, session_id: int, command: RunCommand) -> RunState:
+    """The state `command` leaves, or the 409 saying which state it needs."""
     needed, next_state = TRANSITIONS[command]
-    if run is None or run.state not in needed:
-        state = run.state if run else "no active run"
-        raise ConflictError(f"cannot {command} session {session_id}: {state} (needs {' or '.join(needed)})")
-    try:
-        getattr(worker, command)()
-    except Exception as error:
-        session.rollback()
-        raise refused(error) from error
-    run.state = next_state
-    if command == "stop":
-        run.outcome, run.ended_at, run.stopped_by_id = "stopped", dt.datetime.now(dt.UTC), actor_id
-    add_event(session=session, run_id=run.id, kind=command, user_id=actor_id, worker=worker)
+    if run_state is None or run_state not in needed:
+        state = run_state.value if run_state else "no active run"
+        raise ConflictError(
+            f"cannot {command} session {session_id}: {state} (needs {' or '.join(s.value for s in needed)})"
+        )
+    return next_state
+
+
+@writes
+def record_command(*, session: Session, run_id: int, command: RunCommand, clock: Clock, actor_id: int) -> SessionRun:
+    """A pause or resume (a stop is recorded by `end_run`)."""
+    run = get_run(session=session, run_id=run_id)
+    run.state = TRANSITIONS[command][1].value
+    add_event(session=session, run_id=run.id, kind=command, user_id=actor_id, clock=clock)
+    _audit_motion(session, actor_id, run.id, command)
+    return run
+
+
+def _audit_motion(session: Session, actor_id: int | None, run_id: int, command: str) -> None:
     audit.record(
         session=session,
         user_id=actor_id,
         action="motion",
         resource_type="session_run",
-        resource_id=run.id,
+        resource_id=run_id,
         details={"command": command},
     )
+
+
+@writes
+def end_run(
+    *,
+    session: Session,
+    run_id: int,
+    outcome: RunOutcome,
+    at: dt.datetime,
+    reason: str,
+    clock: Clock = NO_CLOCK,
+    stopped_by_id: int | None = None,
+) -> SessionRun | None:
+    """The one way a run ends: its state, outcome, true end time, who stopped it, a `run_ended` event, and
+    the booking completed when the prescription was. A run that already ended is left as it is (the first
+    end wins), except that a later-known operator is filled in. None when the run does not exist."""
+    run = session.get(SessionRun, run_id)
+    if run is None:
+        return None
+    if run.state == RunState.ENDED:
+        if stopped_by_id is not None and run.stopped_by_id is None:
+            run.stopped_by_id = stopped_by_id
+        return run
+    run.state, run.outcome, run.ended_at = RunState.ENDED.value, outcome.value, at
+    run.stopped_by_id = stopped_by_id
+    if outcome == RunOutcome.STOPPED:
+        add_event(session=session, run_id=run.id, kind="stop", user_id=stopped_by_id, clock=clock, utc=at)
+        _audit_motion(session, stopped_by_id, run.id, "stop")
+    add_event(
+        session=session,
+        run_id=run.id,
+        kind="run_ended",
+        user_id=stopped_by_id,
+        clock=clock,
+        details={"outcome": outcome.value, "reason": reason},
+        detector="robot daemon",
+        utc=at,
+    )
+    if outcome == RunOutcome.COMPLETED:
+        booking = session.get(ScheduledSession, run.scheduled_session_id)
+        if booking is not None:
+            booking.status = "completed"
     return run
 
 
 @writes
-def record_emergency_stop(*, session: Session, user_id: int, worker: WorkerControl | None) -> None:
-    """After the worker has the emergency stop: end every active run and record who pressed it."""
-    runs = list(session.scalars(select(SessionRun).where(SessionRun.state.in_(ACTIVE_STATES))))
-    now = dt.datetime.now(dt.UTC)
-    for run in runs:
-        run.state, run.outcome, run.ended_at, run.stopped_by_id = "ended", "emergency_stop", now, user_id
-        add_event(session=session, run_id=run.id, kind="emergency_stop", user_id=user_id, worker=worker)
-    if not runs:
-        add_event(session=session, run_id=None, kind="emergency_stop", user_id=user_id, worker=worker)
+def record_emergency_stop(
+    *, session: Session, user_id: int | None, authenticated: bool, credential: str, run_ids: list[int], clock: Clock
+) -> None:
+    """Who asked for an emergency stop, truthfully: a user only when the request proved one."""
+    details = {"authenticated": authenticated, "credential": credential}
+    for run_id in run_ids or [None]:  # type: ignore[list-item]
+        add_event(session=session, run_id=run_id, kind="emergency_stop", user_id=user_id, clock=clock, details=details)
     audit.record(
         session=session,
         user_id=user_id,
         action="motion",
         resource_type="robot",
-        details={"command": "emergency_stop", "run_ids": [r.id for r in runs]},
+        details={"command": "emergency_stop", "run_ids": run_ids, **details},
     )
 
 
 @writes
-def record_robot_command(*, session: Session, user_id: int, command: str, worker: WorkerControl) -> None:
-    add_event(session=session, run_id=None, kind=command, user_id=user_id, worker=worker)
+def record_robot_command(*, session: Session, user_id: int, command: str, clock: Clock) -> None:
+    add_event(session=session, run_id=None, kind=command, user_id=user_id, clock=clock)
     audit.record(session=session, user_id=user_id, action="motion", resource_type="robot", details={"command": command})

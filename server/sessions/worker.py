@@ -1,29 +1,27 @@
-"""The seam to the real-time worker (server/realtime, see its issue): what run control needs from it,
-and starting it with the service. With no worker the service keeps working; run control answers 503."""
+"""The seam to the robot: what the robot daemon needs from the real-time worker (`WorkerControl`, which
+`server.realtime.client.WorkerClient` implements), what web routes need from their robot (`RobotLink`,
+which `server.robotd.link.DaemonLink` and `LocalLink` implement), and attaching a web process to its
+robot's daemon, starting the daemon when none runs. Plain imports: an ImportError in the real-time
+stack fails loudly instead of looking like "no robot"."""
 
 from __future__ import annotations
 
-import importlib
 import logging
+import sys
 from typing import Any, Protocol
 
 import numpy as np
 
+from server.robotd.link import DaemonLink, ensure_daemon
+from server.robotd.status import RobotPaths, RobotStatus
 from server.settings import Settings
 
 logger = logging.getLogger(__name__)
-
-# Where the worker package may expose WorkerClient; the first that has it wins.
-WORKER_CLIENT_MODULES = (
-    "server.realtime",
-    "server.realtime.client",
-    "server.realtime.worker_client",
-    "server.realtime.worker",
-)
+WEB_SWITCH_INTERVAL_S = 0.001
 
 
 class WorkerControl(Protocol):
-    """The agreed WorkerClient interface (only the part the service uses)."""
+    """The WorkerClient interface (the part the robot daemon uses)."""
 
     def start(self) -> None: ...
     def shutdown(self) -> None: ...
@@ -39,43 +37,59 @@ class WorkerControl(Protocol):
     def drain_events(self) -> list[dict[str, Any]]: ...
 
 
-def worker_client_class() -> type | None:
-    for module_name in WORKER_CLIENT_MODULES:
-        try:
-            module = importlib.import_module(module_name)
-        except ImportError:
-            continue
-        client = getattr(module, "WorkerClient", None)
-        if client is not None:
-            return client
-    return None
+class RobotLink(Protocol):
+    """What web routes use: commands to the daemon, and state read without asking it."""
+
+    robot: str
+
+    def open(self) -> None: ...
+    def close(self) -> None: ...
+    def emergency_stop(self) -> int | None: ...
+    async def estop_confirmed(self, sequence: int | None) -> bool: ...
+    def status(self) -> RobotStatus: ...
+    def latest_state(self) -> dict[str, Any]: ...
+    def frame(self) -> dict[str, Any]: ...
+    def start_session(self, session_id: int, user_id: int) -> int: ...
+    def control(self, session_id: int, command: Any, user_id: int) -> int: ...
+    def reset(self, user_id: int) -> None: ...
+    def note_emergency_stop(self, user_id: int | None, authenticated: bool, credential: str) -> list[int]: ...
+    def active_run(self) -> tuple[int, int] | None: ...
 
 
-def start_worker(settings: Settings) -> WorkerControl | None:
-    """Spawn the real-time worker for `settings.backend`; None (logged) when it cannot run."""
-    client_class = worker_client_class()
-    if client_class is None:
-        logger.warning("no real-time worker is installed (server.realtime): running without a robot")
-        return None
-    try:
-        hal_options = (
-            {
-                "interface": settings.can_interface,
-                "channel": settings.can_channel,
-                "simulate": settings.can_simulated_drives,
-            }
-            if settings.backend == "canopen"
-            else {}
-        )
-        worker: WorkerControl = client_class(
-            str(settings.robot_file) if settings.robot_file else None,
-            settings.backend,
-            settings.control_rate_hz,
-            hal_options=hal_options,
-        )
-        worker.start()
-    except Exception:
-        logger.exception("the real-time worker (backend %s) did not start: running without a robot", settings.backend)
-        return None
-    logger.info("real-time worker started: backend %s at %d Hz", settings.backend, settings.control_rate_hz)
-    return worker
+DAEMON_SETTINGS = (
+    "database_url",
+    "backend",
+    "robot_file",
+    "control_rate_hz",
+    "can_interface",
+    "can_channel",
+    "can_simulated_drives",
+    "drive_communication_timeout_s",
+    "log_flush_interval_s",
+)
+
+
+def daemon_environment(settings: Settings) -> dict[str, str]:
+    """The settings a daemon started by this web process must share with it (command-line options
+    included), as its environment."""
+    environment = {}
+    for name in DAEMON_SETTINGS:
+        value = getattr(settings, name)
+        if value is not None:
+            environment[f"SSP_REHAB_{name.upper()}"] = str(value)
+    return environment
+
+
+def attach_robot(settings: Settings) -> DaemonLink:
+    """This web process's link to the daemon of `settings.robot`; starts the daemon when none runs.
+    Returns at once: the link reports "starting" or "absent" until the daemon is ready."""
+    # Shorter GIL turns keep /estop and /health answering among busy request threads (a large upload).
+    sys.setswitchinterval(min(sys.getswitchinterval(), WEB_SWITCH_INTERVAL_S))
+    paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
+    environment = daemon_environment(settings)
+    spawned = ensure_daemon(paths, environment)
+    if spawned is not None:
+        logger.info("started the robot daemon for %s (log: %s)", settings.robot, paths.log)
+    link = DaemonLink(paths, restart_absent=True, environment=environment, spawned=spawned)
+    link.open()
+    return link

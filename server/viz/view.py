@@ -248,6 +248,8 @@ class LiveView:
         if self.latest_state is None:
             return False
         state = self.latest_state()
+        if not state:
+            return False  # the robot daemon is not attached yet (starting, or gone)
         stance, sliders = pose_from_state(state)
         key = (stance.tobytes(), sliders.tobytes())
         if key == self._last_shown:

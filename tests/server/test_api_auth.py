@@ -15,8 +15,14 @@ from server.db import Database
 from server.settings import Settings
 from tests.server.conftest import ADMIN_PASSWORD, PATIENT, THERAPIST_PASSWORD, Seed, create_patient
 
-# The calendar subscription link: its secret path is the credential (calendar apps cannot log in).
-PUBLIC_ROUTES = {("GET", "/api/v1/health"), ("POST", "/api/v1/auth/login"), ("GET", "/api/v1/calendar/{token}.ics")}
+# Public: the calendar subscription link (its secret path is the credential; calendar apps cannot log in) and
+# the emergency stop (the console page must stop motion logged in or not: issue 12, defect 12).
+PUBLIC_ROUTES = {
+    ("GET", "/api/v1/health"),
+    ("POST", "/api/v1/auth/login"),
+    ("GET", "/api/v1/calendar/{token}.ics"),
+    ("POST", "/api/v1/estop"),
+}
 # Framework pages that carry no data: the OpenAPI document and its viewers.
 DOCUMENTATION_PATHS = {"/openapi.json", "/docs", "/docs/oauth2-redirect", "/redoc"}
 
@@ -28,7 +34,11 @@ def login(client: TestClient, username: str, password: str) -> object:
 def test_health_is_public_and_reports_no_robot(client: TestClient) -> None:
     response = client.get("/api/v1/health")
     assert response.status_code == 200
-    assert response.json() == {"status": "ok", "robot_connected": False}
+    assert response.json() == {
+        "status": "ok",
+        "robot_connected": False,
+        "robot": {"state": "absent", "reason": "this console runs without a robot"},
+    }
 
 
 def test_login_answers_with_a_strict_http_only_cookie_and_a_bearer_token(client: TestClient, seed: Seed) -> None:

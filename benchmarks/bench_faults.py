@@ -1,0 +1,287 @@
+"""`ssp-rehab bench faults`: the fault-injection scenarios of issue 12 §7 against a real console (`serve`
+and its robot daemon as processes, kinematic backend), with figures for each: stop latency, telemetry
+lost (s), events kept, robot free afterwards; and the emergency stop's and /health's latency during a
+long prescription load and a large upload, against a same-run baseline with nothing loading.
+
+Targets (issue 12): /estop request → latched p99 ≤ 5 ms and /health p99 ≤ 50 ms during a load; the
+web side notices a dead daemon within 200 ms; a web crash loses nothing; a daemon crash at most 100 ms.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import signal
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from benchmarks.fault_harness import EVENT_TIMEOUT_S, SHORT_SINE, Console, alive, in_background, wait_for
+
+RATE_HZ = 1000.0
+STOP_EVENTS = ("service_lost", "controlled_stop", "drives_disabled", "run_ended")
+
+
+def _utc_s(value: Any) -> float:
+    parsed = value if isinstance(value, dt.datetime) else dt.datetime.fromisoformat(str(value))
+    return (parsed if parsed.tzinfo else parsed.replace(tzinfo=dt.UTC)).timestamp()
+
+
+def _p(values: list[float], q: float) -> float | None:
+    return round(float(np.percentile(values, q)), 2) if values else None
+
+
+def _timed(call: Any) -> tuple[float, Any]:
+    started = time.perf_counter()
+    result = call()
+    return (time.perf_counter() - started) * 1e3, result
+
+
+def _start(console: Console, **booking: Any) -> dict[str, Any]:
+    response = console.post(f"/sessions/{console.book(**booking)}/start")
+    assert response.status_code == 200, response.text
+    return dict(response.json())
+
+
+def _free(console: Console) -> bool:
+    """Can a new session start now, after the operator's reset? (It is stopped again at once.)"""
+    console.post("/robot/reset")
+    session_id = console.book()
+    response = console.post(f"/sessions/{session_id}/start")
+    if response.status_code != 200:
+        return False
+    console.post(f"/sessions/{session_id}/stop")
+    _settle(console)
+    return True
+
+
+def _settle(console: Console) -> None:
+    """Wait until the robot stands still and clear any latched stop, ready for the next scenario."""
+    wait_for(
+        lambda: console.get("/robot/state").json().get("state") in ("idle", "stopped", "estop", "fault", "ready"),
+        EVENT_TIMEOUT_S,
+        "the robot to stand still",
+        0.05,
+    )
+    console.post("/robot/reset")
+
+
+def _record(console: Console, run_id: int, injected_utc_s: float) -> dict[str, Any]:
+    """What the database kept of a run after a fault injected at `injected_utc_s`."""
+    events = console.events(run_id)
+    kinds = [e["kind"] for e in events]
+    stored, first, last = console.telemetry_ticks(run_id)
+    disabled = next((e for e in events if e["kind"] == "drives_disabled"), None)
+    figures: dict[str, Any] = {
+        "events_kept": [kind for kind in STOP_EVENTS if kind in kinds],
+        "samples_stored": stored,
+        "gaps_s": round((last - first + 1 - stored) / RATE_HZ, 3) if stored else None,
+    }
+    if disabled is not None:
+        figures["stop_latency_s"] = round(_utc_s(disabled["utc"]) - injected_utc_s, 3)
+        figures["telemetry_lost_s"] = round(max(0, int(disabled["tick"]) - last) / RATE_HZ + figures["gaps_s"], 3)
+    else:
+        figures["stop_latency_s"] = None  # the stop was not recorded (a dead daemon: the drives' own stop)
+        last_utc = console.last_sample_utc_s(run_id)
+        figures["telemetry_lost_s"] = round(max(0.0, injected_utc_s - last_utc), 3) if last_utc else None
+    figures["outcome"] = console.run_row(run_id)["outcome"]
+    return figures
+
+
+def _latencies_during(console: Console, background: threading.Thread, count: int) -> dict[str, Any]:
+    """/health and /estop round trips while `background` runs (and how many landed inside it)."""
+    health, estop, latched, inside = [], [], [], 0
+    with httpx.Client(timeout=60.0) as client:
+        for index in range(count):
+            if not background.is_alive():
+                break
+            inside += 1
+            health.append(_timed(lambda: client.get(f"{console.url}/health"))[0])
+            if index % 5 == 0:
+                elapsed, response = _timed(lambda: client.post(f"{console.url}/estop"))
+                if response.status_code == 200:
+                    estop.append(elapsed)
+                    latched.append(float(response.json()["confirmed_after_ms"]))
+    return {
+        "requests_inside": inside,
+        "health_p50_ms": _p(health, 50),
+        "health_p99_ms": _p(health, 99),
+        "estop_round_trip_p50_ms": _p(estop, 50),
+        "estop_round_trip_p99_ms": _p(estop, 99),
+        "estop_handler_to_latched_p50_ms": _p(latched, 50),
+        "estop_handler_to_latched_p99_ms": _p(latched, 99),
+        "estop_samples": len(estop),
+    }
+
+
+def _baseline(console: Console, count: int) -> dict[str, Any]:
+    health, estop = [], []
+    with httpx.Client(timeout=60.0) as client:
+        for index in range(count):
+            health.append(_timed(lambda: client.get(f"{console.url}/health"))[0])
+            if index % 5 == 0:
+                estop.append(_timed(lambda: client.post(f"{console.url}/estop"))[0])
+    console.post("/robot/reset")
+    return {"health_p99_ms": _p(health, 99), "estop_round_trip_p99_ms": _p(estop, 99)}
+
+
+def _estop_latched_ms(console: Console) -> list[float]:
+    """The worker's own figure: flag stored by /estop → first stop set-point at the HAL (ms)."""
+    return [
+        float((e["details"] if isinstance(e["details"], dict) else json.loads(e["details"]))["latency_ms"])
+        for e in console.events()
+        if e["kind"] == "estop_reached_hal"
+    ]
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    rounds = 3 if quick else 20
+    probes = 100 if quick else 400
+    figures: dict[str, Any] = {"rounds_of_simultaneous_starts": rounds}
+    with tempfile.TemporaryDirectory(prefix="ssp-rehab-faults-") as scratch:
+        console = Console(Path(scratch) / "console")
+        console.start()
+        try:
+            figures["baseline_idle"] = _baseline(console, probes // 2)
+
+            # An emergency stop and /health during a long prescription load (the start then fails).
+            long_load = [{"cue": SHORT_SINE, "duration_s": 900.0 if quick else 3599.0}]
+            session_id = console.book(segments=long_load)
+            loader, _ = in_background(lambda: console.post(f"/sessions/{session_id}/start"))
+            time.sleep(0.5)
+            figures["during_long_load"] = _latencies_during(console, loader, probes)
+            loader.join(900)
+            console.post("/robot/reset")
+
+            # ... and during a large upload, while a session runs.
+            run_id = _start(console)["id"]
+            console.wait_moving()
+            rows = "\n".join(f"{i * 0.01:.2f},0.1,0.2,0.0" for i in range(50_000))
+            body = {
+                "patient_id": console.get("/patients").json()[0]["id"],
+                "name": "replay",
+                "segments": [{"cue": {"kind": "csv_replay", "csv": "time_s,specific_force_x_m_s2,"
+                              "specific_force_y_m_s2,specific_force_z_m_s2\n" + rows}, "duration_s": 60.0}],
+            }  # fmt: skip
+            uploader, _ = in_background(lambda: console.post("/prescriptions", json=body))
+            upload = _latencies_during(console, uploader, probes)
+            uploader.join(300)
+            upload["session_outcome"] = console.run_row(run_id)["outcome"]  # the estop ended it
+            figures["during_large_upload"] = upload
+            _settle(console)
+            latched = _estop_latched_ms(console)
+            figures["estop_flag_to_hal_ms"] = {"p50": _p(latched, 50), "p99": _p(latched, 99), "n": len(latched)}
+
+            # Two simultaneous starts, `rounds` times: exactly one starts, and it records every sample.
+            exact, complete = 0, 0
+            for _ in range(rounds):
+                first, second = console.book(), console.book()
+                gate = threading.Barrier(2)
+
+                def race(session: int, gate: threading.Barrier = gate) -> httpx.Response:
+                    gate.wait()
+                    return console.post(f"/sessions/{session}/start")
+
+                racers = [in_background(lambda s=s: race(s)) for s in (first, second)]
+                for thread, _ in racers:
+                    thread.join(300)
+                won = [r[0] for _, r in racers if isinstance(r[0], httpx.Response) and r[0].status_code == 200]
+                exact += len(won) == 1
+                if won:
+                    winner = won[0].json()
+                    wait_for(lambda w=winner: console.run(w["id"])["sample_count"] > 500, EVENT_TIMEOUT_S, "samples")
+                    console.post(f"/sessions/{winner['scheduled_session_id']}/stop")
+                    _settle(console)
+                    wait_for(lambda w=winner: console.run_row(w["id"])["state"] == "ended", EVENT_TIMEOUT_S, "end")
+                    time.sleep(0.5)  # the tail after the stop
+                    stored, low, high = console.telemetry_ticks(winner["id"])
+                    complete += stored == high - low + 1 and stored == console.run(winner["id"])["sample_count"]
+            figures["simultaneous_starts"] = {"exactly_one_started": exact, "winner_recorded_every_sample": complete}
+
+            # A start for another robot during a run.
+            run_id = _start(console)["id"]
+            before = wait_for(lambda: console.run(run_id)["sample_count"], EVENT_TIMEOUT_S, "samples")
+            other = console.post(f"/sessions/{console.book(robot='twin-2')}/start")
+            after = wait_for(
+                lambda: (c := console.run(run_id)["sample_count"]) > before + 1000 and c, EVENT_TIMEOUT_S, "more"
+            )
+            figures["start_for_another_robot"] = {
+                "status": other.status_code,
+                "running_run_kept_recording": after > before,
+            }
+            console.post(f"/sessions/{console.run(run_id)['scheduled_session_id']}/stop")
+            _settle(console)
+
+            # kill -9 and SIGSTOP of the web process during a session.
+            for name, signum in (("kill9_web", signal.SIGKILL), ("sigstop_web", signal.SIGSTOP)):
+                run_id = _start(console)["id"]
+                console.wait_moving()
+                wait_for(lambda r=run_id: console.run(r)["sample_count"] > 1000, EVENT_TIMEOUT_S, "samples")
+                injected = time.time()
+                console.signal(signum)
+                if signum == signal.SIGKILL:
+                    console.process.wait(30)  # type: ignore[union-attr]
+                    console.process = None
+                    console.port = Console(Path(scratch)).port
+                    console.start()
+                else:
+                    wait_for(lambda r=run_id: console.run_row(r)["state"] == "ended", EVENT_TIMEOUT_S, "end", 0.05)
+                    console.signal(signal.SIGCONT)
+                wait_for(
+                    lambda r=run_id: "drives_disabled" in [e["kind"] for e in console.events(r)],
+                    EVENT_TIMEOUT_S,
+                    "the stop to be recorded",
+                )
+                time.sleep(1.0)
+                figures[name] = {**_record(console, run_id, injected), "robot_free_afterwards": _free(console)}
+
+            # kill -9 and SIGSTOP of the daemon during a session.
+            for name, signum in (("kill9_daemon", signal.SIGKILL), ("sigstop_daemon", signal.SIGSTOP)):
+                run_id = _start(console)["id"]
+                console.wait_moving()
+                wait_for(lambda r=run_id: console.run(r)["sample_count"] > 1000, EVENT_TIMEOUT_S, "samples")
+                daemon = console.daemon_pid()
+                assert daemon is not None
+                with httpx.Client(timeout=10.0) as poller:  # keep-alive: the poll itself stays cheap
+                    injected, injected_mono = time.time(), time.monotonic()
+                    os.kill(daemon, signum)
+                    wait_for(
+                        lambda p=poller: p.get(f"{console.url}/health").json()["robot"]["state"] != "ready",
+                        10.0,
+                        "/health to notice",
+                        0.002,
+                    )
+                    noticed_ms = (time.monotonic() - injected_mono) * 1e3
+                estop = console.post("/estop")
+                if signum == signal.SIGSTOP:
+                    time.sleep(2.0)  # the worker's own watchdog stops the motion meanwhile
+                    os.kill(daemon, signal.SIGCONT)
+                wait_for(lambda r=run_id: console.run_row(r)["state"] == "ended", 600.0, "the run to be closed")
+                wait_for(console.robot_ready, 600.0, "the daemon to be ready again", 0.2)
+                time.sleep(1.0)
+                figures[name] = {
+                    "noticed_by_web_ms": round(noticed_ms, 1),
+                    "estop_status_while_gone": estop.status_code,
+                    **_record(console, run_id, injected),
+                    "robot_free_afterwards": _free(console),
+                }
+                assert not alive(daemon) or signum == signal.SIGSTOP
+
+        finally:
+            console.stop()
+    during = figures["during_long_load"]
+    figures["targets"] = {
+        "estop_handler_to_latched_p99_ms_during_load <= 5": (during["estop_handler_to_latched_p99_ms"] or 1e9) <= 5.0,
+        "health_p99_ms_during_load <= 50": (during["health_p99_ms"] or 1e9) <= 50.0,
+        "dead_daemon_noticed_ms <= 200": figures["kill9_daemon"]["noticed_by_web_ms"] <= 200.0,
+        "web_kill_loses_no_telemetry": figures["kill9_web"].get("telemetry_lost_s") == 0.0,
+        "daemon_kill_loses_at_most_0.1_s": (figures["kill9_daemon"].get("telemetry_lost_s") or 1e9) <= 0.1,
+        "simultaneous_starts_exactly_one": figures["simultaneous_starts"]["exactly_one_started"] == rounds,
+    }
+    return figures

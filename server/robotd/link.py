@@ -1,0 +1,349 @@
+"""The web side's link to its robot: `DaemonLink` to a robot daemon process (the console's way), and
+`LocalLink` to a `RobotDaemon` inside this process (tests with an in-memory worker).
+
+A web process only sends commands and reads state. The emergency stop is a store into the worker's
+control block in shared memory, with no lock, no wait and no message first; the answer then says
+whether the worker saw it (it ticked after the store and shows the stop latched). Liveness is read,
+not asked: the link socket's end (the daemon died), the status record's age (hung), its state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+from server.realtime.shm import ControlBlock, Seqlock
+from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
+from server.robotd.daemon import RobotDaemon, refusal_from_dict
+from server.robotd.status import DaemonState, RobotPaths, RobotStatus, StatusBlock
+from server.sessions.service import RunCommand
+
+log = logging.getLogger("ssp_rehab.robotd")
+
+NO_ROBOT_PROCESS = "no robot process: the drives stop on their own heartbeat loss"
+LINK_BEAT_PERIOD_S = 0.1
+RECONNECT_PERIOD_S = 0.25
+ESTOP_CONFIRM_TIMEOUT_S = 0.25  # the worker checks the flag every tick (1 ms); a live one confirms at once
+COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may take minutes
+MAX_EVENTS_KEPT = 256
+RESPAWN_PERIOD_S = 5.0
+
+
+class DaemonLink:
+    """One web process's link to the daemon of `paths.robot` (started by `ensure_daemon` if need be)."""
+
+    def __init__(
+        self,
+        paths: RobotPaths,
+        *,
+        restart_absent: bool = False,
+        environment: dict[str, str] | None = None,
+        spawned: subprocess.Popen[bytes] | None = None,
+    ) -> None:
+        self.paths = paths
+        self.environment = environment or {}
+        self._spawned = spawned  # the daemon this process started, while it may still be starting
+        self.robot = paths.robot
+        self.restart_absent = restart_absent
+        self._last_spawn_s = time.monotonic()
+        self.link_id: str | None = None
+        self._socket: socket.socket | None = None
+        self._send_lock = threading.Lock()
+        self._attach_lock = threading.Lock()
+        self._status: StatusBlock | None = None
+        self._control: ControlBlock | None = None
+        self._state: Seqlock | None = None
+        self._events: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_EVENTS_KEPT)
+        self._closed = threading.Event()
+        self._connected = threading.Event()
+        self._thread = threading.Thread(target=self._keep_linked, name="robot-link", daemon=True)
+
+    def open(self) -> None:
+        self._thread.start()
+
+    def wait_connected(self, timeout_s: float) -> bool:
+        return self._connected.wait(timeout_s)
+
+    # --- the emergency stop: first, and never behind anything -------------------------------------
+
+    def emergency_stop(self) -> int | None:
+        """Latch the stop in the worker's shared memory; the state sequence to confirm against, or None
+        when there is no worker to receive it."""
+        control, state = self._control, self._state
+        if control is None or state is None:
+            return None
+        control.request_estop(time.perf_counter_ns())
+        return state.sequence
+
+    async def estop_confirmed(self, sequence: int | None) -> bool:
+        """True once the worker ticked after the store and shows the emergency stop latched."""
+        state = self._state
+        if sequence is None or state is None:
+            return False
+        deadline = time.monotonic() + ESTOP_CONFIRM_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if state.sequence >= sequence + 4 and bool(state.read()[0]["estop_latched"]):  # two full writes later
+                return True
+            await asyncio.sleep(0.0005)
+        return False
+
+    # --- state ---------------------------------------------------------------------------------------
+
+    def status(self) -> RobotStatus:
+        if not self._connected.is_set() or self._status is None:
+            running = self.paths.lock.exists() and self.paths.pid.exists()
+            reason = "the robot daemon is starting" if running else "no robot daemon runs for this robot"
+            return RobotStatus(DaemonState.ABSENT, reason)
+        return self._status.read()
+
+    def latest_state(self) -> dict[str, Any]:
+        state = self._state
+        if state is None:
+            return {}
+        return state_dict(state.read()[0])
+
+    def frame(self) -> dict[str, Any]:
+        """The parts of a telemetry frame: robot status, latest state and sample, events since the last frame."""
+        status = self.status()
+        state = self._state if status.ready else None
+        events = []
+        while self._events:
+            events.append(self._events.popleft())
+        record = state.read()[0] if state is not None else None
+        return {
+            "robot": status.to_dict(),
+            "run_id": status.active_run_id,
+            "session_id": status.active_session_id,
+            "state": state_dict(record) if record is not None else None,
+            "sample": {name: record[name] for name in TELEMETRY_DTYPE.names or ()} if record is not None else None,
+            "events": events,
+        }
+
+    # --- commands --------------------------------------------------------------------------------------
+
+    def start_session(self, session_id: int, user_id: int) -> int:
+        return int(self._request("start", session_id=session_id, user_id=user_id, link_id=self.link_id))
+
+    def control(self, session_id: int, command: RunCommand, user_id: int) -> int:
+        return int(self._request("control", session_id=session_id, command=command, user_id=user_id))
+
+    def reset(self, user_id: int) -> None:
+        self._request("reset", user_id=user_id)
+
+    def note_emergency_stop(self, user_id: int | None, authenticated: bool, credential: str) -> list[int]:
+        result: list[int] = self._request(
+            "estop_note", user_id=user_id, authenticated=authenticated, credential=credential, timeout_s=10.0
+        )
+        return result
+
+    def active_run(self) -> tuple[int, int] | None:
+        status = self.status()
+        if status.state is DaemonState.ABSENT:
+            return None
+        if status.active_run_id is None or status.active_session_id is None:
+            return None
+        return status.active_run_id, status.active_session_id
+
+    def _request(self, request: str, /, *, timeout_s: float = COMMAND_TIMEOUT_S, **arguments: Any) -> Any:
+        from server.errors import WorkerUnavailableError
+
+        status = self.status()
+        if not status.ready:
+            raise WorkerUnavailableError(f"robot {self.robot!r} is {status.state.label}: {status.reason}")
+        try:
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as connection:
+                connection.settimeout(timeout_s)
+                connection.connect(str(self.paths.socket))
+                connection.sendall((json.dumps({"cmd": request, **arguments}) + "\n").encode())
+                reply = connection.makefile("rb").readline()
+        except OSError as error:
+            raise WorkerUnavailableError(f"robot {self.robot!r}: the robot daemon did not answer ({error})") from error
+        if not reply:
+            raise WorkerUnavailableError(f"robot {self.robot!r}: the robot daemon closed the connection")
+        message = json.loads(reply)
+        if not message["ok"]:
+            raise refusal_from_dict(message["error"])
+        return message["result"]
+
+    # --- the link ----------------------------------------------------------------------------------------
+
+    def _keep_linked(self) -> None:
+        while not self._closed.is_set():
+            try:
+                self._link_once()
+            except OSError:
+                pass
+            except Exception:
+                log.exception("robot link failed")
+            self._connected.clear()
+            self._restart_if_absent()
+            self._closed.wait(RECONNECT_PERIOD_S)
+
+    def _restart_if_absent(self) -> None:
+        """A daemon that died (kill -9, a crash) is started again, at most every RESPAWN_PERIOD_S: it
+        closes the run it left open as interrupted, and the robot is free again."""
+        from server.robotd.process import daemon_running
+
+        if not self.restart_absent or time.monotonic() - self._last_spawn_s < RESPAWN_PERIOD_S:
+            return
+        if self._spawned is not None and self._spawned.poll() is None:
+            return  # still starting up (it takes the lock only once its imports are done)
+        if not daemon_running(self.paths):
+            log.warning("the robot daemon of %s is gone: starting it again", self.robot)
+            self._last_spawn_s = time.monotonic()
+            self._spawned = spawn_daemon(self.paths, self.environment)
+
+    def _link_once(self) -> None:
+        connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            connection.connect(str(self.paths.socket))
+            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid()}
+            connection.sendall((json.dumps(hello_request) + "\n").encode())
+            reader = connection.makefile("rb")
+            hello = json.loads(reader.readline() or b"null")
+            if not hello or not hello.get("ok"):
+                return
+            self._attach(hello["result"])
+            self.link_id = hello["result"]["link_id"]
+            self._socket = connection
+            self._connected.set()
+            beating = threading.Thread(target=self._beat, args=(connection,), name="robot-link-beat", daemon=True)
+            beating.start()
+            for line in reader:  # until the daemon's end closes the socket
+                message = json.loads(line)
+                if message.get("push") == "events":
+                    self._events.extend(message["events"])
+                elif message.get("push") == "ready":
+                    self._attach(message)
+        finally:
+            self._connected.clear()
+            self._socket = None
+            with contextlib.suppress(OSError):
+                connection.close()
+
+    def _attach(self, names: dict[str, Any]) -> None:
+        with self._attach_lock:
+            if names.get("status_name") and (self._status is None or self._status.name != names["status_name"]):
+                self._status = StatusBlock(names["status_name"])
+            if names.get("control_name") and (self._control is None or self._control.name != names["control_name"]):
+                self._control = ControlBlock(names["control_name"])
+                self._state = Seqlock(TELEMETRY_DTYPE, names["state_name"])
+
+    def _beat(self, connection: socket.socket) -> None:
+        while self._socket is connection and not self._closed.is_set():
+            try:
+                with self._send_lock:
+                    connection.sendall(b"b\n")
+            except OSError:
+                return
+            time.sleep(LINK_BEAT_PERIOD_S)
+
+    def close(self) -> None:
+        self._closed.set()
+        connection = self._socket
+        if connection is not None:
+            with contextlib.suppress(OSError):
+                connection.shutdown(socket.SHUT_RDWR)
+        self._thread.join(2.0)
+
+
+class LocalLink:
+    """The same interface to a `RobotDaemon` in this process (tests: an in-memory worker, a test database)."""
+
+    def __init__(self, daemon: RobotDaemon) -> None:
+        self.daemon = daemon
+        self.robot = daemon.robot
+        self._events: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_EVENTS_KEPT)
+        daemon.listeners.append(self._events.extend)
+
+    def open(self) -> None:
+        self.daemon.start()
+
+    def emergency_stop(self) -> int | None:
+        self.daemon.worker.emergency_stop()
+        return 0
+
+    async def estop_confirmed(self, sequence: int | None) -> bool:
+        return sequence is not None
+
+    def status(self) -> RobotStatus:
+        run = self.daemon.active_run()
+        return RobotStatus(DaemonState.READY, "in-process robot", os.getpid(), *(run or (None, None)))
+
+    def latest_state(self) -> dict[str, Any]:
+        return self.daemon.worker.latest_state()
+
+    def frame(self) -> dict[str, Any]:
+        status = self.status()
+        events = []
+        while self._events:
+            events.append(self._events.popleft())
+        recent = self.daemon.run
+        return {
+            "robot": status.to_dict(),
+            "run_id": recent.run_id if recent is not None else None,
+            "session_id": recent.session_id if recent is not None else None,
+            "state": self.latest_state(),
+            "sample": self.daemon.latest_sample,
+            "events": events,
+        }
+
+    def start_session(self, session_id: int, user_id: int) -> int:
+        return self.daemon.start_session(session_id, user_id)
+
+    def control(self, session_id: int, command: RunCommand, user_id: int) -> int:
+        return self.daemon.control(session_id, command, user_id)
+
+    def reset(self, user_id: int) -> None:
+        self.daemon.reset(user_id)
+
+    def note_emergency_stop(self, user_id: int | None, authenticated: bool, credential: str) -> list[int]:
+        return self.daemon.note_emergency_stop(user_id, authenticated, credential)
+
+    def active_run(self) -> tuple[int, int] | None:
+        return self.daemon.active_run()
+
+    def close(self) -> None:
+        self.daemon.shutdown()
+
+
+def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
+    """`ssp-rehab robot --robot NAME` in its own session, so that it outlives this web process."""
+    paths.directory.mkdir(parents=True, exist_ok=True)
+    with paths.log.open("ab") as log_file:
+        return subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "server.cli.main",
+                "robot",
+                "--robot",
+                paths.robot,
+                "--data-dir",
+                str(paths.data_dir),
+            ],
+            env={**os.environ, **(environment or {})},
+            stdin=subprocess.DEVNULL,
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+
+
+def ensure_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes] | None:
+    """Start the robot's daemon unless one runs; the process if this call started it."""
+    from server.robotd.process import daemon_running
+
+    if daemon_running(paths):
+        return None
+    return spawn_daemon(paths, environment)

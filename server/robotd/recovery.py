@@ -1,0 +1,102 @@
+"""Closing runs a crash left open: on any start (the daemon's, or a web process's while no daemon runs),
+every open run of the robot gets what its journal holds and the database lacks (telemetry after the
+last stored chunk, events not yet stored), then ends as `interrupted`, with an event, at the true time:
+the last moment anything of it was recorded."""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import func, select
+
+from server.db import Database, write_transaction
+from server.jsonable import to_jsonable
+from server.robotd.journal import read_journal, remove_journal
+from server.sessions import service
+from server.sessions.models import ACTIVE_STATES, RunOutcome, SessionEvent, SessionRun, TelemetryChunk
+from server.sessions.recorder import decode_chunk, encode_chunk, event_utc
+
+log = logging.getLogger("ssp_rehab.robotd")
+
+
+def _event_key(kind: str, utc: dt.datetime) -> tuple[str, int]:
+    moment = utc if utc.tzinfo else utc.replace(tzinfo=dt.UTC)
+    return kind[:32], round(moment.timestamp() * 1000)
+
+
+def recover_open_runs(*, database: Database, robot: str, journal_dir: Path) -> list[int]:
+    """Close every open run of `robot` as interrupted; returns their ids. Only call it while no daemon
+    runs for `robot` (the caller holds its lock, or found it free)."""
+    with database.session() as session:
+        open_runs = list(
+            session.scalars(select(SessionRun.id).where(SessionRun.robot == robot, SessionRun.state.in_(ACTIVE_STATES)))
+        )
+    for run_id in open_runs:
+        _recover(database, run_id, journal_dir)
+    return open_runs
+
+
+def _recover(database: Database, run_id: int, journal_dir: Path) -> None:
+    records, events = read_journal(journal_dir, run_id)
+    with database.session() as session, write_transaction(session):
+        run = session.get(SessionRun, run_id)
+        assert run is not None
+        last_moment = run.started_at if run.started_at.tzinfo else run.started_at.replace(tzinfo=dt.UTC)
+        stored_chunks = session.scalars(select(TelemetryChunk.data).where(TelemetryChunk.run_id == run_id)).all()
+        decoded = [decode_chunk(blob) for blob in stored_chunks]
+        last_tick = max((int(chunk["tick"].max()) for chunk in decoded if len(chunk)), default=-1)
+        for chunk in decoded:
+            if len(chunk):
+                last_moment = max(last_moment, dt.datetime.fromtimestamp(float(chunk["utc_s"].max()), dt.UTC))
+        sequence = session.scalar(
+            select(func.coalesce(func.max(TelemetryChunk.sequence), -1)).where(TelemetryChunk.run_id == run_id)
+        )
+        if records is not None and len(records):
+            missing = records[records["tick"] > last_tick]
+            if len(missing):
+                session.add(
+                    TelemetryChunk(
+                        run_id=run_id,
+                        sequence=int(sequence if sequence is not None else -1) + 1,
+                        first_tick=int(missing["tick"][0]),
+                        sample_count=len(missing),
+                        data=encode_chunk(np.ascontiguousarray(missing)),
+                    )
+                )
+                run.sample_count += len(missing)
+            last_moment = max(last_moment, dt.datetime.fromtimestamp(float(records["utc_s"][-1]), dt.UTC))
+        stored_events = list(
+            session.execute(select(SessionEvent.kind, SessionEvent.utc).where(SessionEvent.run_id == run_id))
+        )
+        stored = {_event_key(kind, utc) for kind, utc in stored_events}
+        for _kind, utc in stored_events:
+            last_moment = max(last_moment, utc if utc.tzinfo else utc.replace(tzinfo=dt.UTC))
+        for event in events:
+            utc = event_utc(event.get("utc"))
+            last_moment = max(last_moment, utc)
+            if _event_key(str(event.get("kind")), utc) in stored:
+                continue
+            session.add(
+                SessionEvent(
+                    run_id=run_id,
+                    kind=str(event.get("kind", "unknown"))[:32],
+                    tick=event.get("tick"),
+                    tick_time_s=event.get("tick_time_s"),
+                    utc=utc,
+                    detector=str(event["detector"])[:64] if event.get("detector") else None,
+                    details=to_jsonable(event.get("details") or {}),
+                )
+            )
+    with database.session() as session:
+        service.end_run(
+            session=session,
+            run_id=run_id,
+            outcome=RunOutcome.INTERRUPTED,
+            at=last_moment,
+            reason="left open by a crash; closed on the next start at the time of its last record",
+        )
+    remove_journal(journal_dir, run_id)
+    log.warning("run %d was left open by a crash: closed as interrupted at %s", run_id, last_moment.isoformat())

@@ -1,0 +1,150 @@
+"""Where a robot daemon lives (lock, pid and socket files under the data directory) and the status
+record it publishes in shared memory every 20 ms, which web processes read without asking it."""
+
+from __future__ import annotations
+
+import enum
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from server.realtime.shm import Seqlock
+
+STATUS_PERIOD_S = 0.02
+DAEMON_STALE_S = 0.1  # no status beat (every 20 ms) for this long: dead or hung (issue 12: within 200 ms)
+ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+REASON_BYTES = 240
+
+
+class DaemonState(enum.IntEnum):
+    ABSENT = 0  # only ever judged by the web side: no daemon, or it stopped answering
+    STARTING = 1
+    READY = 2
+    FAULT = 3
+    STOPPING = 4
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+STATUS_DTYPE = np.dtype(
+    [
+        ("beat_ns", np.int64),  # CLOCK_MONOTONIC, shared by every process on the host
+        ("state", np.uint8),
+        ("pid", np.int64),
+        ("active_run_id", np.int64),  # 0: none
+        ("active_session_id", np.int64),
+        ("reason", f"S{REASON_BYTES}"),
+    ]
+)
+
+
+@dataclass(frozen=True)
+class RobotPaths:
+    data_dir: Path
+    robot: str
+
+    def __post_init__(self) -> None:
+        if not ROBOT_NAME.match(self.robot):
+            raise ValueError(f"robot = {self.robot!r}: must be 1 to 64 letters, digits, '.', '_' or '-'")
+
+    @property
+    def directory(self) -> Path:
+        return self.data_dir / "robots"
+
+    @property
+    def lock(self) -> Path:
+        return self.directory / f"{self.robot}.lock"
+
+    @property
+    def pid(self) -> Path:
+        return self.directory / f"{self.robot}.pid"
+
+    @property
+    def socket(self) -> Path:
+        return self.directory / f"{self.robot}.sock"
+
+    @property
+    def shared_memory(self) -> Path:
+        """The names of the daemon's shared-memory blocks, unlinked by the next daemon if this one crashed."""
+        return self.directory / f"{self.robot}.shm"
+
+    @property
+    def log(self) -> Path:
+        return self.directory / f"{self.robot}.log"
+
+    @property
+    def journal(self) -> Path:
+        return self.data_dir / "runs" / self.robot
+
+
+@dataclass(frozen=True)
+class RobotStatus:
+    """What the web side knows about its robot: `state` is starting, ready, fault or absent."""
+
+    state: DaemonState
+    reason: str
+    pid: int | None = None
+    active_run_id: int | None = None
+    active_session_id: int | None = None
+
+    @property
+    def ready(self) -> bool:
+        return self.state is DaemonState.READY
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "state": self.state.label,
+            "reason": self.reason,
+            "pid": self.pid,
+            "active_run_id": self.active_run_id,
+            "active_session_id": self.active_session_id,
+        }
+
+
+class StatusBlock:
+    """The daemon's status record behind a seqlock (written by the daemon, read by web processes)."""
+
+    def __init__(self, name: str | None = None) -> None:
+        self.seqlock = Seqlock(STATUS_DTYPE, name)
+        self._record = np.zeros(1, STATUS_DTYPE)
+
+    @property
+    def name(self) -> str:
+        return self.seqlock.name
+
+    def publish(self, state: DaemonState, reason: str, pid: int, run: tuple[int, int] | None) -> None:
+        record = self._record
+        record["beat_ns"] = time.monotonic_ns()
+        record["state"] = int(state)
+        record["pid"] = pid
+        record["active_run_id"], record["active_session_id"] = run if run is not None else (0, 0)
+        record["reason"] = reason.encode()[:REASON_BYTES]
+        self.seqlock.write(record)
+
+    def read(self) -> RobotStatus:
+        record = self.seqlock.read()[0]
+        age_s = (time.monotonic_ns() - int(record["beat_ns"])) * 1e-9
+        pid = int(record["pid"]) or None
+        if age_s > DAEMON_STALE_S:
+            return RobotStatus(
+                DaemonState.ABSENT,
+                f"the robot daemon (pid {pid}) stopped answering {age_s:.2f} s ago: hung or stopped",
+                pid,
+            )
+        run_id, session_id = int(record["active_run_id"]), int(record["active_session_id"])
+        return RobotStatus(
+            DaemonState(int(record["state"])),
+            record["reason"].decode(errors="replace"),
+            pid,
+            run_id or None,
+            session_id or None,
+        )
+
+    def close(self) -> None:
+        self.seqlock.close()
