@@ -33,6 +33,11 @@ from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.prescriptions.validation import robot_limits
+from server.robotd.daemon import RobotDaemon
+from server.robotd.link import LocalLink
+from server.robotd.process import daemon_running
+from server.robotd.recovery import recover_open_runs
+from server.robotd.status import RobotPaths
 from server.security import (
     CSRF_HEADER,
     CSRFMiddleware,
@@ -44,11 +49,6 @@ from server.security import (
     safe_validation_errors,
     shown_value,
 )
-from server.robotd.daemon import RobotDaemon
-from server.robotd.link import LocalLink
-from server.robotd.process import daemon_running
-from server.robotd.recovery import recover_open_runs
-from server.robotd.status import RobotPaths
 from server.sessions.recorder import TelemetryFanout
 from server.sessions.worker import RobotLink, attach_robot
 from server.settings import Settings
@@ -95,16 +95,18 @@ def _error_handlers(app: FastAPI) -> None:
     @app.exception_handler(InvalidFieldError)
     async def invalid(_request: Request, error: InvalidFieldError) -> JSONResponse:
         # The same shape as FastAPI's own 422, so that clients read every refusal the same way.
-        detail = [
-            {
-                "loc": ["body", *error.field.split(".")],
-                "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
-                "type": "value_error",
-                # The parts apart, as pydantic's own errors carry them: clients word them in their units.
-                "input": _json_safe(jsonable_encoder(error.value)),
-                "ctx": {"limit": error.limit},
-            }
-        ]
+        detail = safe_validation_errors(
+            [
+                {
+                    "loc": ["body", *error.field.split(".")],
+                    "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
+                    "type": "value_error",
+                    # The parts apart, as pydantic's own errors carry them: clients word them in their units.
+                    "input": jsonable_encoder(error.value),
+                    "ctx": {"limit": error.limit},
+                }
+            ]
+        )
         return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
     @app.exception_handler(WorkerUnavailableError)
@@ -150,9 +152,9 @@ def _api_router() -> APIRouter:
     from server.patients.routes import router as patients_router
     from server.prescriptions.preview import router as prescription_preview_router
     from server.prescriptions.routes import router as prescriptions_router
-    from server.scheduling.routes import public_router as scheduling_public_router
     from server.reports.routes import router as reports_router
     from server.reviews.routes import router as reviews_router
+    from server.scheduling.routes import public_router as scheduling_public_router
     from server.scheduling.routes import router as scheduling_router
     from server.sessions.balance import router as balance_router
     from server.sessions.routes import estop_router, motion_router, websocket_router

@@ -2,7 +2,7 @@
 search key ("Jurgen" finds "Jürgen" on SQLite and PostgreSQL alike); each run gets SOAP notes.
 
 Revision ID: 0005
-Revises: 0001
+Revises: 0003
 Create Date: 2026-12-01 09:45:00
 """
 
@@ -14,7 +14,7 @@ from alembic import op
 from server.patients.search import search_key
 
 revision: str = "0005"
-down_revision: str | None = "0001"
+down_revision: str | None = "0003"
 branch_labels: str | None = None
 depends_on: str | None = None
 

@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from core import tuning
-from core.fidelity import platform_angular_velocity, platform_specific_force
+from core.fidelity import platform_angular_velocity
 from core.kinematics import twin_inverse_kinematics, twin_singularity_report, violation_stretches
 from core.perception import head_specific_force, tilt_rate_check
 from core.robot import GRAVITY_M_S2, TwinRobot

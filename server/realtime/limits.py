@@ -16,7 +16,6 @@ import numpy as np
 
 from core.errors import InvalidValueError
 from core.robot import MotionLimits, TwinRobot
-from core.twin_kernels import LIMITS_VECTOR_SIZE
 
 
 class LimitOverrideError(InvalidValueError):

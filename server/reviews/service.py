@@ -13,10 +13,10 @@ from server.errors import ConflictError
 from server.reviews.models import RunNote
 from server.reviews.schemas import AcknowledgementOut, RunNotesIn, RunNotesOut, RunReviewOut
 from server.scheduling.service import get_booking
-from server.sessions.models import SessionEvent, SessionRun
+from server.sessions.models import RunOutcome, RunState, SessionEvent, SessionRun
 from server.sessions.service import add_event, get_run
 
-OUTCOMES_NEEDING_ACKNOWLEDGEMENT = frozenset({"fall", "fault", "limit_hit"})
+OUTCOMES_NEEDING_ACKNOWLEDGEMENT = frozenset({RunOutcome.FALL, RunOutcome.FAULT, RunOutcome.LIMIT_HIT})
 ACKNOWLEDGED = "acknowledged"
 
 
@@ -41,7 +41,7 @@ def _acknowledgement_out(event: SessionEvent) -> AcknowledgementOut:
 
 def needs_acknowledgement(session: Session, run: SessionRun) -> bool:
     return (
-        run.state == "ended"
+        run.state == RunState.ENDED
         and run.outcome in OUTCOMES_NEEDING_ACKNOWLEDGEMENT
         and _acknowledgement(session, run) is None
     )
@@ -83,7 +83,7 @@ def pending_on_robot(*, session: Session, robot: str) -> RunReviewOut | None:
     robot has run normally since any earlier one."""
     last = session.scalars(
         select(SessionRun)
-        .where(SessionRun.robot == robot, SessionRun.state == "ended")
+        .where(SessionRun.robot == robot, SessionRun.state == RunState.ENDED)
         .order_by(SessionRun.ended_at.desc(), SessionRun.id.desc())
     ).first()
     if last is None or not needs_acknowledgement(session, last):
@@ -108,7 +108,7 @@ def refuse_start_while_unacknowledged(*, session: Session, session_id: int) -> N
 @writes
 def acknowledge(*, session: Session, run_id: int, user_id: int, note: str) -> AcknowledgementOut:
     run = get_run(session=session, run_id=run_id)
-    if run.state != "ended" or run.outcome not in OUTCOMES_NEEDING_ACKNOWLEDGEMENT:
+    if run.state != RunState.ENDED or run.outcome not in OUTCOMES_NEEDING_ACKNOWLEDGEMENT:
         raise ConflictError(
             f"run {run_id} ended as {run.outcome or run.state}: only a fall, fault or limit stop is acknowledged"
         )
@@ -119,7 +119,6 @@ def acknowledge(*, session: Session, run_id: int, user_id: int, note: str) -> Ac
         run_id=run.id,
         kind=ACKNOWLEDGED,
         user_id=user_id,
-        worker=None,
         details={"outcome": run.outcome, "note": note},
     )
     session.flush()

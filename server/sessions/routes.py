@@ -41,6 +41,7 @@ from server.auth.dependencies import (
 from server.auth.security import TokenClaims
 from server.db import Database, SessionDep, writes
 from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
+from server.exports.dataset import dataset_zip
 from server.jsonable import to_jsonable
 from server.reviews.service import refuse_start_while_unacknowledged
 from server.robotd.link import NO_ROBOT_PROCESS
@@ -234,7 +235,7 @@ def list_events(run_id: IdPath, session: SessionDep) -> list[SessionEventOut]:
 # --- export --------------------------------------------------------------------------------------
 
 
-def _log_for_run(request: Request, session: Any, run_id: int, identify: bool) -> Any:
+def _log_for_run(request: Request, session: Any, run_id: int, identify: bool, include_free_text: bool = False) -> Any:
     return logs.session_log(
         session=session,
         run_id=run_id,
@@ -312,7 +313,7 @@ def export_study(
     try:
         study = [_log_for_run(request, session, r, False, include_free_text) for r, _ in rows]
         if layout == "parquet_dataset":
-            bundle = importlib.import_module("server.exports.dataset").dataset_zip(study, selection=selection)
+            bundle = dataset_zip(study, selection=selection)
         else:
             bundle = exports.export_bundle(study, selection=selection)
     except exports.SessionLogError as error:

@@ -16,8 +16,8 @@ import numpy as np
 from core.dynamics import InverseDynamics, TwinInverseDynamics
 from core.kinematics import ForwardKinematics, inverse_kinematics, twin_inverse_kinematics
 from core.robot import RobotPlacement, TwinRobot, paper_robot
-from server.realtime.telemetry import LimitCode
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
+from server.realtime.telemetry import LimitCode
 
 TICK_PERIOD_S = 0.001
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from core.robot import TwinRobot, named_twin, symmetric_placements
+from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
 from server.realtime.prescription import PrescriptionRejected, check_prescription
 from server.realtime.telemetry import LimitCode, StopReason, SupervisorState
-from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
 from tests.server.test_supervisor import Harness
 
 # Bases staggered by only ±60 mm: clear at neutral (44 mm), but a sway of about 80 mm brings rods 4 (or 3)
