@@ -169,13 +169,13 @@ def _run_out(request: Request, run_id: int) -> SessionRunOut:
 @motion_router.post(
     "/sessions/{session_id}/start", response_model=SessionRunOut, responses={503: {"description": "No robot"}}
 )
-def start_session(
-    session_id: IdPath, request: Request, session: SessionDep, user_id: ActingUserId, robot: RobotDep
-) -> SessionRunOut:
+def start_session(session_id: IdPath, request: Request, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
     """The robot daemon checks the booking, plans and checks its prescription version, starts motion and
     records a new run (with the run id it chose). Refused (409) while the robot's last run ended in an
     unacknowledged fall, fault or limit stop."""
-    refuse_start_while_unacknowledged(session=session, session_id=session_id)
+    database: Database = request.app.state.database
+    with database.session() as session:  # closed before the daemon writes the run (SQLite has one writer)
+        refuse_start_while_unacknowledged(session=session, session_id=session_id)
     return _run_out(request, robot.start_session(session_id, user_id))
 
 
