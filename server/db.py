@@ -252,6 +252,17 @@ class Database:
         )
 
     @contextmanager
+    def exclusive(self) -> Iterator[None]:
+        """Hold the one connection (tests) across several sessions; a no-op on a pooled engine. A thread that
+        takes its own lock before opening sessions takes this first, so it never waits on the connection while
+        holding a lock that a request thread (which holds the connection) waits for."""
+        if self._single_connection_lock is None:
+            yield
+            return
+        with self._single_connection_lock:
+            yield
+
+    @contextmanager
     def session(self) -> Iterator[Session]:
         if self._single_connection_lock is None:
             with self._factory() as session:

@@ -186,7 +186,8 @@ class AuditJournal:
 
     def drain(self) -> int:
         """Move every journaled entry into the database now; returns the number of new rows."""
-        with self._drain_lock:
+        assert self._database is not None
+        with self._database.exclusive(), self._drain_lock:
             self._rotate()
             inserted = 0
             for rotated in list(self._rotated):
