@@ -209,6 +209,10 @@ TRANSITIONS: tuple[Transition, ...] = (
 )
 del S
 FAULT_RESET_TRANSITION = 15
+# The table by source state, for the per-cycle decode of every drive's controlword.
+TRANSITIONS_FROM: dict[DriveState, tuple[Transition, ...]] = {
+    state: tuple(t for t in TRANSITIONS if t.source == state) for state in DriveState
+}
 
 # The controlword that keeps a drive where it is (no transition out of that state matches it).
 HOLD_CONTROLWORD: dict[DriveState, int] = {
@@ -305,8 +309,8 @@ def commanded_transition(
 ) -> Transition | None:
     """The transition a drive in `current` with 0x605A = `quick_stop_option` takes on receiving
     `controlword` (None: stay)."""
-    for transition in TRANSITIONS:
-        if transition.source != current or transition.controlword is None:
+    for transition in TRANSITIONS_FROM[current]:
+        if transition.controlword is None:
             continue
         if not transition.exists_under(quick_stop_option):
             continue

@@ -341,6 +341,11 @@ class SimulatedDrive:
             self._master_heartbeat_seen_s = now_s
             self._heartbeat_lost = False
 
+    @property
+    def synchronous(self) -> bool:
+        """Whether SYNC is this drive's time base (a synchronous RPDO is mapped)."""
+        return self._synchronous
+
     def runs_on_own_clock(self) -> bool:
         """A ramp in progress, or a lost master: then time passes without SYNC.
 
@@ -348,7 +353,12 @@ class SimulatedDrive:
         is the SYNC, as on a real drive.
         """
         ramping = self.state in (DriveState.QUICK_STOP_ACTIVE, DriveState.FAULT_REACTION_ACTIVE)
-        return ramping or self._heartbeat_lost or not self.connected or not self._synchronous
+        # Without a synchronous RPDO (SDO or event-driven control) the drive's own clock is its time base
+        # whenever there is something to move or a fault to raise.
+        asynchronous = not self._synchronous and (
+            self.state in cia402.POWERED_STATES or self._pending_fault is not None
+        )
+        return ramping or self._heartbeat_lost or not self.connected or asynchronous
 
     def check_heartbeat(self, now_s: float) -> None:
         seen = self._master_heartbeat_seen_s
@@ -715,6 +725,8 @@ class SimulatedDriveRack:
                     if sync_missing and drive.runs_on_own_clock():
                         drive.advance(now - drive.last_step_s, synchronous=False)
                         drive.last_step_s = now
+                    elif not drive.synchronous:
+                        drive.last_step_s = now  # idle without SYNC: its clock starts from now when enabled
                     drive.send_event_tpdos(now)
 
     def inject_bus_off(self) -> None:
