@@ -114,16 +114,19 @@ def test_a_form_posted_from_another_port_does_not_start_a_session(
                 page.goto(f"{base_url}/#/session/{session_id}")
                 expect(page.locator("#viz-frame")).to_be_visible()
                 expect(page.frame_locator("#viz-frame").locator("canvas").first).to_be_visible(timeout=120_000)
+                # The console's own request passes the check: it reaches the route, which refuses only
+                # because nothing runs (409, not 403). Pausing moves nothing, so later tests find the robot idle.
                 own = page.evaluate(
                     """async (url) => {
                         const response = await fetch(url, {method: "POST", credentials: "same-origin",
                                                            headers: {"X-Requested-With": "ssp-rehab"}});
-                        return response.status;
+                        return [response.status, await response.text()];
                     }""",
-                    start_url,
+                    start_url.replace("/start", "/pause"),
                 )
-                assert own == 200  # the same request from the console's own page starts the session
+                assert own[0] == 409 and "no active run" in own[1], own
                 assert violations == []
             finally:
                 browser.close()
-                api.post(f"/api/v1/sessions/{session_id}/stop")
+                if api.get(f"/api/v1/sessions/{session_id}/runs").json():  # the forgery got through
+                    api.post(f"/api/v1/sessions/{session_id}/stop")
