@@ -15,19 +15,11 @@ import pytest
 from core.robot import TwinRobot, default_twin
 from server.exports import SessionLog, pseudonymise, session_metadata
 from server.exports.dataset import DATA_DICTIONARY_FILE, write_parquet_dataset
+from tests.server.test_exports import PATIENT as EXPORT_PATIENT
+from tests.server.test_exports import SALT
 
-SALT = "a-deployment-secret-of-32-bytes!"
-PATIENT = {
-    "identifier": "MRN-0042917",
-    "name": "Jane Quinta Example",
-    "date_of_birth": "1961-07-15",
-    "sex": "female",
-    "height_m": 1.68,
-    "body_mass_kg": 64.0,
-    "diagnosis": "vestibular hypofunction after a fall at Mary's house",
-    "affected_side": "left",
-    "notes": "lives with her daughter Mary Example",
-}
+# The patient of the export tests; its notes name a person, its diagnosis is free text.
+PATIENT = {**EXPORT_PATIENT, "diagnosis": "vestibular hypofunction after a fall at Mary's house"}
 REQUIRED_SHAPES = {
     "cue_specific_force_m_s2": (3,),
     "cue_angular_velocity_rad_s": (3,),
