@@ -107,7 +107,7 @@ export async function patientPage(main, patientId) {
     get(`/patients/${patientId}`),
     get(`/prescriptions${query({ patient_id: patientId })}`),
     get(`/sessions${query({ patient_id: patientId, limit: 200 })}`),
-    get(`/patients/${patientId}/balance`).catch(() => []),
+    get(`/patients/${patientId}/trends`).catch(() => null),
   ]);
   main.append(
     h("h1", {}, `${patient.name} `, h("span.muted", {}, `(${patient.identifier})`)),
@@ -124,23 +124,53 @@ export async function patientPage(main, patientId) {
       h("td.num", {}, fmt(p.current.content.segments.reduce((s, x) => s + x.duration_s, 0), "s", 0)),
       h("td", {}, h("a.button", { href: `#/prescriptions/${p.id}` }, "Edit / preview"))))) : h("p.muted", {}, "No prescription yet."),
   );
-  const falls = trend.reduce((sum, run) => sum + run.falls, 0);
-  main.append(h("h2", {}, "Balance trend"), h("p", {}, `${trend.length} recorded run(s), ${falls} fall(s).`));
-  const measured = trend.filter((run) => run.sway);
-  if (measured.length) {
-    const charts = h("div.charts");
-    main.append(charts);
-    const x = measured.map((_, i) => i + 1);
-    staticChart(charts, "COP sway: RMS distance and 95 % ellipse", "mm / cm²", x,
-      [measured.map((r) => r.sway.rms_distance_m * M_TO_MM), measured.map((r) => r.sway.ellipse_area_95_m2 * 1e4)],
-      [{ label: "RMS distance (mm)" }, { label: "95 % ellipse area (cm²)" }], { xLabel: "run number" });
-    staticChart(charts, "COP mean velocity and falls", "mm/s / count", x,
-      [measured.map((r) => r.sway.mean_velocity_m_s * M_TO_MM), measured.map((r) => r.falls)],
-      [{ label: "Mean COP velocity (mm/s)" }, { label: "Falls (count)" }], { xLabel: "run number" });
+  const runs = trend ? trend.runs : [];
+  const falls = runs.reduce((sum, run) => sum + run.falls, 0);
+  const faulted = runs.filter((run) => run.status === "faulted").length;
+  main.append(h("h2", {}, "Balance trend"),
+    h("p", {}, `${runs.length} recorded run(s), ${falls} fall(s), ${faulted} faulted run(s).`));
+  if (runs.some((run) => run.sway)) {
+    trendCharts(main, trend);
+    main.append(h("p.muted", {}, `Prieto et al. (1996) measures of the centre of pressure, low-pass filtered at `
+      + `${trend.method.filter.cutoff_hz} Hz. Red points: falls and faulted runs. No normative band is drawn: `
+      + "none has a verified published source for training on moving platforms."));
   } else {
     main.append(h("p.muted", {}, "No run with force-plate data yet: the trend appears after the first session."));
   }
   main.append(h("h2", {}, "Session history"), await sessionsTable(bookings.slice().reverse()));
+}
+
+// Balance trends by date (GET /patients/{id}/trends): one chart per series with its one unit on the y-axis;
+// falls and faulted runs are drawn as red points over the line.
+function trendCharts(host, trends) {
+  const charts = h("div.charts");
+  host.append(charts);
+  for (const series of trends.series) {
+    if (!series.points.length) continue;
+    const x = series.points.map((p) => Date.parse(p.started_at) / 1000);
+    const values = series.points.map((p) => p.value);
+    const marked = series.points.map((p) => (p.status === "ok" ? null : p.value));
+    const shown = (u, v) => (v == null ? "—" : `${v.toFixed(series.key === "falls" ? 0 : 1)} ${series.unit}`);
+    const box = h("div.chart", { role: "img", "aria-label": `${series.label} by date, ${series.unit}` });
+    charts.append(box);
+    const plot = new uPlot({
+      title: `${series.label} (${series.unit})`,
+      width: 600,
+      height: 220,
+      scales: { x: { time: true } },
+      axes: [
+        { label: "date", stroke: "#111", grid: { stroke: "#ddd" }, font: "14px system-ui", labelFont: "bold 14px system-ui" },
+        { label: series.unit, stroke: "#111", grid: { stroke: "#ddd" }, font: "14px system-ui", labelFont: "bold 14px system-ui", size: 64 },
+      ],
+      series: [
+        { label: "date", value: (u, v) => (v == null ? "—" : new Date(v * 1000).toLocaleString()) },
+        { label: series.label, stroke: "#0b4fa8", width: 2, points: { show: true, size: 6 }, value: shown },
+        { label: "fall or faulted run", stroke: "#d1495b", width: 0, paths: () => null,
+          points: { show: true, size: 11, fill: "#d1495b" }, value: shown },
+      ],
+    }, [x, values, marked], box);
+    plot.setSize({ width: Math.max(320, (box.clientWidth || 600) - 12), height: 220 });
+  }
 }
 
 function metric(label, value, bad = false) {
