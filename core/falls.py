@@ -20,6 +20,7 @@ the same events.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
@@ -277,14 +278,14 @@ class _Detector:
     ) -> list[FallEvent]:
         """Batch: the runs of the condition at least `required_samples` long, vectorised."""
         held = self.conditions(fz, cop, load)
+        return self._events(time_s, held, lambda tick: self.values(fz[tick], cop[tick], load[tick]))
+
+    def _events(
+        self, time_s: np.ndarray, held: np.ndarray, values_at: Callable[[int], dict[str, Any]]
+    ) -> list[FallEvent]:
+        """An event where each run of `held` reaches `required_samples`, with `values_at(tick)`."""
         return [
-            FallEvent(
-                self.name,
-                float(time_s[start]),
-                float(time_s[tick]),
-                int(tick),
-                self.values(fz[tick], cop[tick], load[tick]),
-            )
+            FallEvent(self.name, float(time_s[start]), float(time_s[tick]), tick, values_at(tick))
             for start, tick in held_runs(held, self.required_samples)
         ]
 
@@ -543,16 +544,8 @@ class FusedDetector(_Detector):
         support_az: np.ndarray | None = None,
     ) -> list[FallEvent]:
         scores, features = self.scores(fz, cop, load, support_az)
-        return [
-            FallEvent(
-                self.name,
-                float(time_s[start]),
-                float(time_s[tick]),
-                int(tick),
-                self._evidence(scores[tick], features[tick]),
-            )
-            for start, tick in held_runs(scores >= self.threshold, self.required_samples)
-        ]
+        held = scores >= self.threshold
+        return self._events(time_s, held, lambda tick: self._evidence(float(scores[tick]), features[tick]))
 
     def values(self, fz: np.ndarray, cop: np.ndarray, load: float) -> dict[str, Any]:
         return self._evidence(float(self._score[0]), self._features[0])

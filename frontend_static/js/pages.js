@@ -47,7 +47,6 @@ export function loginPage(main, { onLogin }) {
 }
 
 // --- patients ------------------------------------------------------------------------------------
-const FAULTED_OUTCOMES = new Set(["fall", "fault", "limit_hit", "emergency_stop"]);
 const SEXES = ["female", "male", "other", "unknown"];
 const SIDES = ["none", "left", "right", "both"];
 
@@ -142,7 +141,7 @@ export async function patientPage(main, patientId) {
     get(`/patients/${patientId}`),
     get(`/prescriptions${query({ patient_id: patientId })}`),
     get(`/sessions${query({ patient_id: patientId, limit: 200 })}`),
-    get(`/patients/${patientId}/balance`).catch(() => []),
+    get(`/patients/${patientId}/trends`).catch(() => null),
   ]);
   main.append(
     h("h1", {}, `${patient.name} `, h("span.muted", {}, `(${patient.identifier})`)),
@@ -165,23 +164,16 @@ export async function patientPage(main, patientId) {
       h("td.num", {}, fmt(p.current.content.segments.reduce((s, x) => s + x.duration_s, 0), "s", 0)),
       h("td", {}, h("a.button", { href: `#/prescriptions/${p.id}` }, "Edit / preview"))))) : h("p.muted", {}, "No prescription yet."),
   );
-  const falls = trend.reduce((sum, run) => sum + run.falls, 0);
-  main.append(h("h2", {}, "Balance trend"), h("p", {}, `${trend.length} recorded run(s), ${falls} fall(s).`));
-  const measured = trend.filter((run) => run.sway);
-  if (measured.length) {
-    // One measure and one unit per chart, by date; runs that ended in a fall, fault or stop are marked.
-    const charts = h("div.charts#balance-trend");
-    main.append(charts);
-    const x = measured.map((r) => new Date(r.started_at).getTime() / 1000);
-    const faulted = measured.map((r) => FAULTED_OUTCOMES.has(r.outcome));
-    const trendChart = (title, unit, values) => staticChart(charts, title, unit, x,
-      [values, values.map((v, i) => (faulted[i] ? v : null))],
-      [{ label: title, points: 6, spanGaps: true }, { label: "ended by a fall, fault or stop", color: "#b00020", points: 10, pointsOnly: true }],
-      { xLabel: "date", xTime: true, yRange: (u, min, max) => [0, max > 0 ? max * 1.15 : 1] });
-    trendChart("RMS distance of the COP", "mm", measured.map((r) => r.sway.rms_distance_m * M_TO_MM));
-    trendChart("Mean COP velocity", "mm/s", measured.map((r) => r.sway.mean_velocity_m_s * M_TO_MM));
-    trendChart("95 % ellipse area", "cm²", measured.map((r) => r.sway.ellipse_area_95_m2 * 1e4));
-    trendChart("Falls", "count", measured.map((r) => r.falls));
+  const runs = trend ? trend.runs : [];
+  const falls = runs.reduce((sum, run) => sum + run.falls, 0);
+  const faulted = runs.filter((run) => run.status === "faulted").length;
+  main.append(h("h2", {}, "Balance trend"),
+    h("p", {}, `${runs.length} recorded run(s), ${falls} fall(s), ${faulted} faulted run(s).`));
+  if (runs.some((run) => run.sway)) {
+    trendCharts(main, trend);
+    main.append(h("p.muted", {}, `Prieto et al. (1996) measures of the centre of pressure, low-pass filtered at `
+      + `${trend.method.filter.cutoff_hz} Hz. Red points: falls and faulted runs. No normative band is drawn: `
+      + "none has a verified published source for training on moving platforms."));
   } else {
     main.append(h("p.muted", {}, "No run with force-plate data yet: the trend appears after the first session."));
   }
@@ -214,6 +206,22 @@ async function archivePatient(patient) {
     banner("info", archiving ? `${patient.name} archived.` : `${patient.name} restored.`);
     go(`#/patients/${patient.id}`);
   } catch (error) { showError(error, "form"); }
+}
+
+// Balance trends by date (GET /patients/{id}/trends): one chart per series with its one unit on the y-axis;
+// falls and faulted runs are drawn as red points over the line.
+function trendCharts(host, trends) {
+  const charts = h("div.charts#balance-trend");
+  host.append(charts);
+  for (const series of trends.series) {
+    if (!series.points.length) continue;
+    const x = series.points.map((p) => Date.parse(p.started_at) / 1000);
+    const values = series.points.map((p) => p.value);
+    const marked = series.points.map((p) => (p.status === "ok" ? null : p.value));
+    staticChart(charts, series.label, series.unit, x, [values, marked],
+      [{ label: series.label, points: 6, spanGaps: true }, { label: "fall or faulted run", color: "#b00020", points: 10, pointsOnly: true }],
+      { xLabel: "date", xTime: true, yRange: (u, min, max) => [0, max > 0 ? max * 1.15 : 1] });
+  }
 }
 
 function metric(label, value, bad = false) {

@@ -312,6 +312,12 @@ def _print_scores(data: dict[str, Any]) -> None:
             f"{score['detector']:<18}{shown:>12}{score['false_alarms_per_hour']:>10.2f}"
             f"{ms(score['latency_median_s']):>16}{ms(score['latency_p95_s']):>9}"
         )
+    for detector, curve in data.get("roc", {}).items():
+        operating = curve["operating_point"]
+        console.print(
+            f"operating point {detector}: {curve['parameter']} = {operating['threshold']:g} "
+            f"(ROC over {len(curve['points'])} thresholds in --json and roc.png)"
+        )
     for path in data.get("plots", []):
         console.print(f"plot: {path}")
 

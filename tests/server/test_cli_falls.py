@@ -95,6 +95,7 @@ def test_a_truth_file_replaces_the_sidecar_labels(cohort: tuple[Path, dict], tmp
     assert json.loads(result.stdout)["falls"] == 2
     human = runner.invoke(app, ["evaluate-falls", str(out / "session_0001.npz")])
     assert human.exit_code == 0 and "harness_load" in human.stdout
+    assert "operating point fused: fused.threshold = 1" in human.stdout
 
 
 def test_bad_arguments_are_refused_naming_them(tmp_path: Path) -> None:
