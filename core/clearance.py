@@ -61,6 +61,21 @@ class PartTable:
     platform_pairs: np.ndarray  # (M, 2) the pose-invariant platform–platform pairs
 
 
+class PartArrays(NamedTuple):
+    """What places every part, as one numba argument: the part table and the bases."""
+
+    kind: np.ndarray  # (P,) PartKind
+    robot: np.ndarray  # (P,)
+    leg: np.ndarray  # (P,)
+    local: np.ndarray  # (P, 2, 3)
+    half_length: np.ndarray  # (P,)
+    radius: np.ndarray  # (P,)
+    rail_y: np.ndarray  # (2, 6)
+    rail_z: float
+    base_yaw: np.ndarray  # (2, 3, 3)
+    base_origin: np.ndarray  # (2, 3)
+
+
 def _hexagon_order(joints: np.ndarray) -> np.ndarray:
     return np.argsort(np.arctan2(joints[:, 1], joints[:, 0]))
 
@@ -239,15 +254,7 @@ def segment_distance(segment_a: np.ndarray, segment_b: np.ndarray) -> float:
 
 @numba.njit(cache=True, nogil=True)
 def twin_segments_into(
-    kind: np.ndarray,
-    robot: np.ndarray,
-    leg: np.ndarray,
-    local: np.ndarray,
-    half_length: np.ndarray,
-    rail_y: np.ndarray,  # (2, 6)
-    rail_z: float,
-    base_yaw: np.ndarray,  # (2, 3, 3)
-    base_origin: np.ndarray,  # (2, 3)
+    parts: PartArrays,
     positions: np.ndarray,  # (2, 3) platform positions, base frames
     rotations: np.ndarray,  # (2, 3, 3)
     joints_world: np.ndarray,  # (2, 6, 3) platform joints p + R·B, base frames
@@ -255,6 +262,8 @@ def twin_segments_into(
     segments_out: np.ndarray,  # (P, 2, 3) world
 ) -> None:
     """Every part's segment in the world frame for one twin pose."""
+    kind, robot, leg, local, half_length = parts.kind, parts.robot, parts.leg, parts.local, parts.half_length
+    rail_y, rail_z, base_yaw, base_origin = parts.rail_y, parts.rail_z, parts.base_yaw, parts.base_origin
     point = np.empty(3)
     for part in range(kind.shape[0]):
         side = robot[part]
@@ -312,17 +321,8 @@ def min_clearance_kernel(
 
 @numba.njit(cache=True, nogil=True)
 def _batch_clearance(
-    kind: np.ndarray,
-    robot: np.ndarray,
-    leg: np.ndarray,
-    local: np.ndarray,
-    half_length: np.ndarray,
-    radius: np.ndarray,
+    parts: PartArrays,
     pairs: np.ndarray,
-    rail_y: np.ndarray,
-    rail_z: float,
-    base_yaw: np.ndarray,
-    base_origin: np.ndarray,
     positions: np.ndarray,  # (N, 2, 3)
     rotations: np.ndarray,  # (N, 2, 3, 3)
     joints_world: np.ndarray,  # (N, 2, 6, 3)
@@ -333,25 +333,11 @@ def _batch_clearance(
     pair_out: np.ndarray,  # (N,)
     pair_clearance_out: np.ndarray,  # (N, K) when all_pairs
 ) -> None:
-    segments = np.empty((kind.shape[0], 2, 3))
-    boxes = np.empty((kind.shape[0], 6))
+    radius = parts.radius
+    segments = np.empty((parts.kind.shape[0], 2, 3))
+    boxes = np.empty((parts.kind.shape[0], 6))
     for pose in range(positions.shape[0]):
-        twin_segments_into(
-            kind,
-            robot,
-            leg,
-            local,
-            half_length,
-            rail_y,
-            rail_z,
-            base_yaw,
-            base_origin,
-            positions[pose],
-            rotations[pose],
-            joints_world[pose],
-            sliders[pose],
-            segments,
-        )
+        twin_segments_into(parts, positions[pose], rotations[pose], joints_world[pose], sliders[pose], segments)
         if all_pairs:
             best, best_pair = np.inf, -1
             for k in range(pairs.shape[0]):
@@ -406,6 +392,18 @@ class TwinClearance:
         self.base_origin = np.ascontiguousarray([twin.placement(s).base_origin_m for s in twin.sides], dtype=float)
         self.clearance_min_m = twin.parts.clearance_min_m
         self.table = table
+        self.arrays = PartArrays(
+            table.kind,
+            table.robot,
+            table.leg,
+            table.local,
+            table.half_length,
+            table.radius,
+            self.rail_y,
+            self.rail_z,
+            self.base_yaw,
+            self.base_origin,
+        )
         # Pairs that can come within IK_EXACT_BELOW_M of the margin first (a pose-independent bound says
         # which), then closest first at neutral, so that the running minimum prunes the rest early.
         neutral = self._inputs(np.zeros((1, 6)))
@@ -475,23 +473,13 @@ class TwinClearance:
         clearance = np.empty(count)
         closest = np.empty(count, dtype=np.int64)
         per_pair = np.empty((count if all_pairs else 0, len(pairs)))
-        t = self.table
         pairs = np.ascontiguousarray(pairs)
 
         def run_chunk(start: int) -> None:
             chunk = slice(start, start + IK_CHUNK_POSES)
             _batch_clearance(
-                t.kind,
-                t.robot,
-                t.leg,
-                t.local,
-                t.half_length,
-                t.radius,
+                self.arrays,
                 pairs,
-                self.rail_y,
-                self.rail_z,
-                self.base_yaw,
-                self.base_origin,
                 inputs.positions[chunk],
                 inputs.rotations[chunk],
                 inputs.joints_world[chunk],
@@ -553,18 +541,9 @@ class TwinClearance:
         """Every part's segment in the world frame, (N, P, 2, 3); radii in `table.radius`."""
         inputs = self._inputs(stance_poses)
         out = np.empty((len(inputs.positions), len(self.table.names), 2, 3))
-        t = self.table
         for pose in range(len(out)):
             twin_segments_into(
-                t.kind,
-                t.robot,
-                t.leg,
-                t.local,
-                t.half_length,
-                self.rail_y,
-                self.rail_z,
-                self.base_yaw,
-                self.base_origin,
+                self.arrays,
                 inputs.positions[pose],
                 inputs.rotations[pose],
                 inputs.joints_world[pose],

@@ -33,7 +33,6 @@ from typing import Any
 import numpy as np
 from pymoo.algorithms.moo.nsga2 import NSGA2
 from pymoo.config import Config
-from pymoo.core.callback import Callback
 from pymoo.core.problem import Problem
 from pymoo.optimize import minimize
 
@@ -49,6 +48,7 @@ from core.robot import (
     paper_robot,
     symmetric_placements,
 )
+from core.tuning import _Progress  # one pymoo progress callback: advance(1) per generation
 from core.workspace import axis_ranges, stance_reachability
 
 Config.warnings["not_compiled"] = False
@@ -297,15 +297,6 @@ def recommend(pareto: list[tuple[LayoutCandidate, LayoutMetrics]], reference: La
         return (round(worst, 2), round(metrics.volume_fraction, 2), -metrics.peak_force_n)  # 1 % resolution
 
     return max(range(len(pareto)), key=lambda index: key(pareto[index]))
-
-
-class _Progress(Callback):
-    def __init__(self, advance: Callable[[int], None]) -> None:
-        super().__init__()
-        self._advance = advance
-
-    def notify(self, algorithm: Any) -> None:
-        self._advance(1)
 
 
 def layout_search(

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from core.clearance import TwinClearance, min_clearance_kernel, twin_clearance, twin_segments_into
+from core.clearance import PartArrays, TwinClearance, min_clearance_kernel, twin_clearance, twin_segments_into
 from core.kinematics import (
     ForwardKinematicsError,
     LegGeometry,
@@ -52,15 +52,8 @@ def _set_violation(violation: np.ndarray, code: int, axis: int, value: float, li
 class ClearanceParts(NamedTuple):
     """The twin's capsules (core.clearance) and the tick's scratch for them, as one numba argument."""
 
-    kind: np.ndarray
-    robot: np.ndarray
-    leg: np.ndarray
-    local: np.ndarray
-    half_length: np.ndarray
-    radius: np.ndarray
-    pairs: np.ndarray
-    rail_y: np.ndarray  # (2, 6)
-    rail_z: float
+    arrays: PartArrays
+    pairs: np.ndarray  # the pairs that can come near the margin (`TwinClearance.near_pair_count`)
     platform_clearance: float  # pose-invariant (both platforms move with the stance frame)
     positions: np.ndarray  # (2, 3) scratch: this tick's platform positions, base frames
     rotations: np.ndarray  # (2, 3, 3)
@@ -71,18 +64,10 @@ class ClearanceParts(NamedTuple):
 
     @classmethod
     def build(cls, model: TwinClearance) -> ClearanceParts:
-        t = model.table
-        count = len(t.names)
+        count = len(model.table.names)
         return cls(
-            t.kind,
-            t.robot,
-            t.leg,
-            t.local,
-            t.half_length,
-            t.radius,
-            t.pairs[: model.near_pair_count],  # the tick checks a breach of at most the margin + 0.1 m
-            model.rail_y,
-            model.rail_z,
+            model.arrays,
+            model.table.pairs[: model.near_pair_count],  # the tick checks a breach of at most the margin + 0.1 m
             model.platform_clearance_m,
             np.zeros((2, 3)),
             np.zeros((2, 3, 3)),
@@ -94,29 +79,14 @@ class ClearanceParts(NamedTuple):
 
 
 @numba.njit(cache=True)
-def _check_clearance(
-    parts: ClearanceParts, base_yaw: np.ndarray, base_origin: np.ndarray, clearance_min: float, violation: np.ndarray
-) -> None:
+def _check_clearance(parts: ClearanceParts, clearance_min: float, violation: np.ndarray) -> None:
     """COLLISION (code 10, axis = the pair's index in `pairs`, or −2 for the platforms) when two parts come
     closer than `clearance_min`."""
     twin_segments_into(
-        parts.kind,
-        parts.robot,
-        parts.leg,
-        parts.local,
-        parts.half_length,
-        parts.rail_y,
-        parts.rail_z,
-        base_yaw,
-        base_origin,
-        parts.positions,
-        parts.rotations,
-        parts.joints_world,
-        parts.sliders,
-        parts.segments,
+        parts.arrays, parts.positions, parts.rotations, parts.joints_world, parts.sliders, parts.segments
     )
     # Only a breach matters here: exact below the margin, skipping every pair that cannot be that close.
-    clearance, pair = min_clearance_kernel(parts.segments, parts.radius, parts.pairs, parts.boxes, clearance_min)
+    clearance, pair = min_clearance_kernel(parts.segments, parts.arrays.radius, parts.pairs, parts.boxes, clearance_min)
     if parts.platform_clearance < clearance:
         clearance, pair = parts.platform_clearance, -2
     if clearance < clearance_min:
@@ -215,7 +185,7 @@ def twin_command_kernel(
             if platform_cone > limits[1]:
                 _set_violation(violation, PLATFORM_JOINT_CONE, axis, platform_cone, limits[1])
     if every_rod_reaches:
-        _check_clearance(parts, base_yaw, base_origin, limits[6], violation)
+        _check_clearance(parts, limits[6], violation)
     for axis in range(12):
         velocity = (sliders_out[axis] - previous_sliders[axis]) / period_s
         acceleration = (velocity - previous_velocity[axis]) / period_s

@@ -70,8 +70,10 @@ class AxisRange:
 def axis_ranges(reachability: Reachability, *, scan_points: int = 2000, bisection_steps: int = 40) -> list[AxisRange]:
     """Per-axis reach: scan each of the 12 half-axes, then bisect between the last reachable and the
     first unreachable scan point (all rays at once). Refuses an unreachable neutral pose."""
-    if not reachability(np.zeros((1, 6)))[0][0]:
-        raise ValueError("neutral pose: not reachable under the robot's limits, so there is no workspace around it")
+    neutral_ok, neutral_flags = reachability(np.zeros((1, 6)))
+    if not neutral_ok[0]:
+        why = ", ".join(reasons(int(neutral_flags[0])))
+        raise ValueError(f"neutral pose: not reachable ({why}), so there is no workspace around it")
     directions = np.concatenate([np.diag(SEARCH_LIMITS), -np.diag(SEARCH_LIMITS)])  # (12, 6) rays to the search limit
     fractions = np.linspace(0.0, 1.0, scan_points + 1)[1:]
     scan = (fractions[None, :, None] * directions[:, None, :]).reshape(-1, 6)

@@ -80,3 +80,11 @@ def pyplot() -> Any:
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def print_violations_by_reason(by_side: dict[str, dict[str, Any]]) -> None:
+    """Every limit each robot breaks (`core.kinematics.violation_stretches`): samples and stretches of time."""
+    for side, by_reason in by_side.items():
+        for reason, found in by_reason.items():
+            spans = ", ".join(f"{x['from_s']:.3f}–{x['to_s']:.3f} s" for x in found["stretches"])
+            console.print(f"  {side} robot: {reason}: {found['samples']} samples ({spans})")

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import typer
 
-from server.cli.output import console, emit, fail, progress_bar
+from server.cli.output import console, emit, fail, print_violations_by_reason, progress_bar
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
 from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, LoopConfigError
 from server.realtime.prescription import PrescriptionError, PrescriptionRejected, check_prescription
@@ -32,6 +32,8 @@ def _human_report(data: dict[str, Any]) -> None:
     if "rejected" in data:
         rejected = data["rejected"]
         console.print(f"[bold red]refused[/]: {rejected['message']}")
+        # Every kinematic limit the segment breaks, not only the first (issue 13).
+        print_violations_by_reason(rejected.get("violations_by_reason", {}))
         return
     console.print(f"[bold green]accepted[/]: {data['samples']} samples, {data['duration_s']:.3f} s with transitions")
     for name, use in sorted(data["peak_use"].items()):

@@ -17,7 +17,7 @@ from core.robot import GRAVITY_M_S2, TwinRobot
 from core.shaping import CommandShaper, ParameterError, ShapingParameters
 from core.vestibular import VestibularModel
 from core.washout import WashoutParameters, paper_tilt_parameters, washout_batch
-from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
+from server.cli.output import console, emit, fail, print_violations_by_reason, progress_bar, pyplot, save_figure
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
 
 SCENARIOS = ("paper-tilt-step",)
@@ -195,10 +195,7 @@ def register(app: typer.Typer) -> None:
             console.print(f"max displacement  {d['max_abs_displacement_mm']:.1f} mm")
             console.print(f"back to neutral   {d['returned_to_neutral']}   within stroke {d['within_stroke']}")
             console.print(f"every IK limit    {d['reachable']}")
-            for side, by_reason in d["violations_by_reason"].items():
-                for reason, found in by_reason.items():
-                    spans = ", ".join(f"{x['from_s']:.3f}–{x['to_s']:.3f} s" for x in found["stretches"])
-                    console.print(f"  {side} robot: {reason}: {found['samples']} samples ({spans})")
+            print_violations_by_reason(d["violations_by_reason"])
             for side, report in d["singularity"].items():
                 modes = ", ".join(f"{x['from_s']:.3f}–{x['to_s']:.3f} s" for x in report["other_assembly_mode"])
                 console.print(

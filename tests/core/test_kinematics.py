@@ -1,4 +1,4 @@
-"""Kinematics (core/kinematics.py): paper check values, IK/FK round trip, Jacobians, limits, the twin."""
+"""Kinematics (core/kinematics/): paper check values, IK/FK round trip, Jacobians, limits, the twin."""
 
 from __future__ import annotations
 

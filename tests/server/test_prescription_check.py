@@ -115,3 +115,20 @@ def test_patient_data_is_validated(twin: TwinRobot) -> None:
     light = check_prescription({"segments": [GENTLE]}, twin, patient={"body_mass_kg": 50.0, "height_m": 1.6})
     assert report.peak_use["drive_force"] > light.peak_use["drive_force"]  # the payload enters the dynamics
     assert np.isfinite(report.duration_s)
+
+
+def test_a_singularity_refusal_reports_the_worst_conditioning_and_every_crossing(twin: TwinRobot) -> None:
+    """Paper §5's lateral step (0.2 g): the mirrored left robot passes its singularity. The refusal gives
+    the worst condition number and when, every det J sign change, and every limit's stretches (issue 13)."""
+    step = {"kind": "step", "axis": "y", "final_m_s2": 0.2 * 9.80665, "step_time_s": 0.5}
+    with pytest.raises(PrescriptionRejected) as refused:
+        check_prescription({"segments": [{"cue": step, "duration_s": 10.0}]}, twin)
+    rejection = refused.value
+    assert rejection.limit == "singularity"
+    assert "worst condition number" in str(rejection) and "other assembly mode" in str(rejection)
+    left = rejection.to_dict()["singularity"]["left"]
+    assert left["worst_condition_number"] > 1e4 and left["det_sign_changes"]
+    assert len(left["det_sign_changes"]) == 2 * len(left["other_assembly_mode"])  # in and back out
+    assert left["samples_beyond_margin"] > 1000
+    by_reason = rejection.to_dict()["violations_by_reason"]["left"]
+    assert by_reason["too close to or beyond a singularity"]["samples"] >= left["samples_beyond_margin"] - 1

@@ -19,7 +19,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from core.dynamics import PayloadModel, payload_body
-from core.kinematics import inverse_kinematics, rotation_matrices, stance_origin_world
+from core.kinematics import inverse_kinematics, rotation_matrices, stance_origin_world, yaw_matrix
 from core.robot import GRAVITY_M_S2, SSPRobot, TwinRobot
 
 ROD_RADIUS_M = 0.02  # a 40 mm tube: only its spin inertia uses it, and spin never changes the dynamics
@@ -78,10 +78,6 @@ def _quaternion_z_to(direction: np.ndarray) -> np.ndarray:
     return quaternion
 
 
-def _yaw(yaw: float) -> np.ndarray:
-    return np.array([[np.cos(yaw), -np.sin(yaw), 0.0], [np.sin(yaw), np.cos(yaw), 0.0], [0.0, 0.0, 1.0]])
-
-
 def neutral_rod_vectors(robot: SSPRobot) -> tuple[np.ndarray, np.ndarray]:
     """Neutral slider positions (6,) and rod vectors slider joint → platform joint (6, 3), base frame."""
     neutral = np.asarray(robot.neutral_pose, dtype=float)
@@ -98,7 +94,7 @@ def _inertial(mass: float, com: np.ndarray, inertia: np.ndarray) -> str:
 
 def _robot_xml(twin: TwinRobot, side: str, options: SimModelOptions, lines: list[str], equalities: list[str]) -> None:
     placement, robot = twin.placement(side), twin.robot_for(side)
-    base_rotation = _yaw(placement.base_yaw_rad)
+    base_rotation = yaw_matrix(placement.base_yaw_rad)
     base_origin = np.asarray(placement.base_origin_m, dtype=float)
     base_quat = _quaternion(base_rotation)
     neutral_sliders, rods = neutral_rod_vectors(robot)
