@@ -47,9 +47,9 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from core.kinematics import condition_number, euler_from_rotation, twin_inverse_kinematics, twin_platform_poses
+from core.kinematics import euler_from_rotation, twin_inverse_kinematics, twin_platform_poses, twist_jacobian
 from core.perception import DEFAULT_HEAD_HEIGHT_M, head_angular_velocity, head_specific_force
-from core.robot import MotionLimits, TwinRobot
+from core.robot import MotionLimits, SSPRobot, TwinRobot
 from core.shaping import ParameterError, require_finite
 from core.vestibular import VestibularModel, VestibularParameters
 
@@ -90,10 +90,11 @@ class OptimalCueingParameters:
     sqp_iterations: int = 5
     # ADMM iterations per QP: an unfinished QP answer is only a search direction; the SQP's line search
     # accepts a step only after checking the exact functions.
-    qp_iterations: int = 1000
+    qp_iterations: int = 700
     trust_region_m: float = 0.2  # per SQP step, on every control point
     trust_region_rad: float = 0.2
     step_tolerance: float = 1e-4  # stop when no control point moves more than this (m or rad)
+    cost_tolerance: float = 0.01  # ... or when a full step lowers the exact cost by less than this fraction
 
     def __post_init__(self) -> None:
         for item in fields(self):
@@ -174,6 +175,19 @@ class CueingWorkspace:
         return 0 if self.clearance_m is None else 1
 
 
+def _inverse_condition_number(robot: SSPRobot, poses: np.ndarray) -> np.ndarray:
+    """1 / `core.kinematics.condition_number`, from the eigenvalues of JᵀJ (cheaper than an SVD)."""
+    jacobian = twist_jacobian(robot, poses)
+    jacobian[..., 3:] /= robot.platform_radius_m
+    eigenvalues = np.linalg.eigvalsh(np.swapaxes(jacobian, -1, -2) @ jacobian)
+    return np.sqrt(np.maximum(eigenvalues[..., 0], 0.0) / eigenvalues[..., -1])
+
+
+def _twin_sliders(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
+    solutions = twin_inverse_kinematics(twin, poses, check=False)
+    return np.concatenate([solutions[side].slider_positions_m for side in twin.sides], axis=1)
+
+
 def workspace_quantities(workspace: CueingWorkspace, poses: np.ndarray) -> np.ndarray:
     """Every constrained quantity of the twin for stance poses (N, 6): sliders (12, m), base cones (12),
     platform cones (12), stance tilt (1, rad), inverse condition number of each robot (2; it falls to 0
@@ -187,7 +201,7 @@ def workspace_quantities(workspace: CueingWorkspace, poses: np.ndarray) -> np.nd
     conditions = np.full((len(poses), 2), np.nan)
     for index, (side, (positions, rotations)) in enumerate(twin_platform_poses(twin, poses).items()):
         robot_poses = np.concatenate([positions, euler_from_rotation(rotations)], axis=1)
-        conditions[reachable, index] = 1.0 / condition_number(twin.robot_for(side), robot_poses[reachable])
+        conditions[reachable, index] = _inverse_condition_number(twin.robot_for(side), robot_poses[reachable])
     tilt = np.arccos(np.clip(np.cos(poses[:, 3]) * np.cos(poses[:, 4]), -1.0, 1.0))
     columns = [
         sliders,
@@ -324,11 +338,11 @@ def _workspace_jacobians(
     speed = np.max(np.abs(velocity), axis=1, keepdims=True)
     tau = np.where(speed > 1e-9, 1e-4 / np.maximum(speed, 1e-9), 0.0)
     perturbed = [pose] + [pose + _FD_STEP * np.eye(6)[j] for j in range(6)]
-    perturbed += [pose + tau * velocity, pose - tau * velocity]
     values = workspace_quantities(workspace, np.concatenate(perturbed))
     base = values[:count]
     jacobian = np.stack([(values[(j + 1) * count : (j + 2) * count] - base) / _FD_STEP for j in range(6)], axis=-1)
-    forward, backward = values[7 * count : 8 * count, :12], values[8 * count :, :12]
+    along = _twin_sliders(workspace.twin, np.concatenate([pose + tau * velocity, pose - tau * velocity]))
+    forward, backward = along[:count], along[count:]
     second = np.divide(forward - 2.0 * base[:, :12] + backward, tau**2, out=np.zeros_like(forward), where=tau > 0.0)
     return base, jacobian, second
 
@@ -527,11 +541,12 @@ class _Window:
             if taken is None:
                 trust_scale *= 0.5
                 continue
-            cost, length = taken
+            previous_cost, (cost, length) = cost, taken
             accepted += 1
             if length == 1.0:
                 trust_scale = min(1.0, 2.0 * trust_scale)
-            if length * np.max(np.abs(step)) < params.step_tolerance:
+            small_gain = length == 1.0 and previous_cost - cost < params.cost_tolerance * previous_cost
+            if small_gain or length * np.max(np.abs(step)) < params.step_tolerance:
                 converged = True
                 break
         return WindowReport(

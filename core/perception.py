@@ -24,7 +24,7 @@ import numpy as np
 from core.robot import GRAVITY_M_S2
 from core.shaping import ParameterError, require_finite
 from core.vestibular import ROTATION_AXES, PerceptionThresholds
-from core.washout import body_rates, rotate
+from core.washout import body_angular_acceleration, body_rates, lever_arm_acceleration, rotate
 
 DEFAULT_HEAD_HEIGHT_M = 1.6  # REFERENCE.md §7: a head about 1.6 m above the feet
 # Ear (vestibular) height as a fraction of stature: eye height is 0.936 H and the ear is within ~2 cm of it
@@ -42,32 +42,6 @@ def head_height_m(body_height_m: float | None) -> float:
     if isinstance(body_height_m, bool) or not math.isfinite(body_height_m) or not low <= body_height_m <= high:
         raise ParameterError("height_m", body_height_m, f"must be a stature in [{low:g}, {high:g}] m")
     return HEAD_HEIGHT_FRACTION * float(body_height_m)
-
-
-def body_angular_acceleration(angles: np.ndarray, rates: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
-    """ω̇_b: the derivative of `core.washout.body_rates` (R = Rx·Ry·Rz), time last (..., 3, N)."""
-    pitch, yaw = angles[..., 1, :], angles[..., 2, :]
-    cb, sb, cc, sc = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    roll_rate, pitch_rate, yaw_rate = rates[..., 0, :], rates[..., 1, :], rates[..., 2, :]
-    from_rates = np.stack(
-        [
-            (-sb * cc * pitch_rate - cb * sc * yaw_rate) * roll_rate + cc * yaw_rate * pitch_rate,
-            (sb * sc * pitch_rate - cb * cc * yaw_rate) * roll_rate - sc * yaw_rate * pitch_rate,
-            cb * pitch_rate * roll_rate,
-        ],
-        axis=-2,
-    )
-    return body_rates(angles, accelerations) + from_rates
-
-
-def lever_arm_acceleration(
-    angular_velocity: np.ndarray, angular_acceleration: np.ndarray, head_height_m: float
-) -> np.ndarray:
-    """ω̇_b × r + ω_b × (ω_b × r) for r = (0, 0, h), head axes (..., 3, N)."""
-    wx, wy, wz = angular_velocity[..., 0, :], angular_velocity[..., 1, :], angular_velocity[..., 2, :]
-    ax, ay = angular_acceleration[..., 0, :], angular_acceleration[..., 1, :]
-    h = head_height_m
-    return np.stack([h * (ay + wx * wz), h * (-ax + wy * wz), -h * (wx * wx + wy * wy)], axis=-2)
 
 
 def head_specific_force(

@@ -52,6 +52,7 @@ from core.shaping import (
 )
 
 OUTPUT_SIZE = 18  # pose (6), velocity (6), acceleration (6)
+HEAD_HEIGHT_MAX_M = 2.5
 BATCH_CHUNK_SAMPLES = 32_768
 
 
@@ -71,6 +72,10 @@ class WashoutParameters:
     angular_velocity_limit_rad_s: float = 1.0
     rotational_damping: float = 1.0
     rotational_break_rad_s: float = 1.0
+    # Height of the patient's head above the foot plates. 0 (the paper): the cue is delivered at the rotation
+    # centre. > 0: the translational channel also cancels the lever-arm terms of the platform's rotation
+    # (ω̇ × r + ω × (ω × r), `core.perception`), so that the head feels the cue.
+    head_height_m: float = 0.0
 
     def __post_init__(self) -> None:
         for item in fields(self):
@@ -82,6 +87,11 @@ class WashoutParameters:
             if item.name.endswith("_gain"):
                 if value < 0.0:
                     raise ParameterError(item.name, value, "must be >= 0 (0 switches the channel off)")
+            elif item.name == "head_height_m":
+                if not 0.0 <= value <= HEAD_HEIGHT_MAX_M:
+                    raise ParameterError(
+                        item.name, value, f"must be in [0, {HEAD_HEIGHT_MAX_M:g}] m (0: rotation centre)"
+                    )
             elif value <= 0.0:
                 raise ParameterError(item.name, value, "must be > 0")
         lowpass_peak = self.specific_force_limit_m_s2 * _lowpass_peak_factor(self.tilt_damping)
@@ -155,6 +165,7 @@ class WashoutDesign:
     angular_velocity_limit_rad_s: Any
     tilt_rate_step_rad: Any  # rate limit × sample period
     first_order_break_rad_s: Any  # ω_a′: acceleration = s/(s + ω_a′)·u = u − ω_a′·(1/(s + ω_a′))·u
+    head_height_m: Any = 0.0
 
     def sections(self, *rows: int) -> np.ndarray:
         return self.bank[..., list(rows), :]
@@ -191,6 +202,7 @@ def design(params: WashoutParameters | Sequence[WashoutParameters], sample_perio
         angular_velocity_limit_rad_s=scalar("angular_velocity_limit_rad_s"),
         tilt_rate_step_rad=scalar("tilt_rate_limit_rad_s") * sample_period_s,
         first_order_break_rad_s=scalar("translational_first_order_break_rad_s"),
+        head_height_m=scalar("head_height_m"),
     )
 
 
@@ -295,6 +307,32 @@ def body_rates(angles: np.ndarray, euler_rates: np.ndarray) -> np.ndarray:
     )
 
 
+def body_angular_acceleration(angles: np.ndarray, rates: np.ndarray, accelerations: np.ndarray) -> np.ndarray:
+    """ω̇_b: the derivative of `body_rates` (R = Rx·Ry·Rz), time last (..., 3, N)."""
+    pitch, yaw = angles[..., 1, :], angles[..., 2, :]
+    cb, sb, cc, sc = np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    roll_rate, pitch_rate, yaw_rate = rates[..., 0, :], rates[..., 1, :], rates[..., 2, :]
+    from_rates = np.stack(
+        [
+            (-sb * cc * pitch_rate - cb * sc * yaw_rate) * roll_rate + cc * yaw_rate * pitch_rate,
+            (sb * sc * pitch_rate - cb * cc * yaw_rate) * roll_rate - sc * yaw_rate * pitch_rate,
+            cb * pitch_rate * roll_rate,
+        ],
+        axis=-2,
+    )
+    return body_rates(angles, accelerations) + from_rates
+
+
+def lever_arm_acceleration(
+    angular_velocity: np.ndarray, angular_acceleration: np.ndarray, head_height_m: Any
+) -> np.ndarray:
+    """ω̇_b × r + ω_b × (ω_b × r) for r = (0, 0, h), head axes (..., 3, N)."""
+    wx, wy, wz = angular_velocity[..., 0, :], angular_velocity[..., 1, :], angular_velocity[..., 2, :]
+    ax, ay = angular_acceleration[..., 0, :], angular_acceleration[..., 1, :]
+    unit = np.stack([ay + wx * wz, -ax + wy * wz, -(wx * wx + wy * wy)], axis=-2)
+    return head_height_m * unit
+
+
 # --- Batch ------------------------------------------------------------------------------------------
 
 
@@ -392,6 +430,17 @@ def run_washout(
     angle_acceleration = carry.rate("angle_rate", angle_rate, dt)
     zero = np.zeros_like(pitch)
     attitude = angle + np.stack([tilt[..., 0, :], pitch, zero], axis=-2)
+    tilt_rates = np.stack([tilt_rate[..., 0, :], tilt_rate[..., 1, :], zero], axis=-2)
+    tilt_accelerations = np.stack([tilt_acceleration[..., 0, :], tilt_acceleration[..., 1, :], zero], axis=-2)
+    attitude_rate = angle_rate + tilt_rates
+    attitude_acceleration = angle_acceleration + tilt_accelerations
+    if np.any(np.asarray(wd.head_height_m) != 0.0):
+        # At the head: the platform origin must also cancel the head's swing about it.
+        force = force - lever_arm_acceleration(
+            body_rates(attitude, attitude_rate),
+            body_angular_acceleration(attitude, attitude_rate, attitude_acceleration),
+            wd.head_height_m,
+        )
 
     # Translational channel: gravity removed in the inertial frame, Formula 12, integrated twice.
     standing = np.array([[0.0], [0.0], [GRAVITY_M_S2]])
@@ -401,12 +450,10 @@ def run_washout(
     acceleration = squared - wd.first_order_break_rad_s * velocity  # exact under Tustin too
     position = carry.filter("position", wd.sections(POSITION, LAG), inertial)
 
-    tilt_rates = np.stack([tilt_rate[..., 0, :], tilt_rate[..., 1, :], zero], axis=-2)
-    tilt_accelerations = np.stack([tilt_acceleration[..., 0, :], tilt_acceleration[..., 1, :], zero], axis=-2)
     return WashoutSignals(
         pose=np.concatenate([position, attitude], axis=-2),
-        velocity=np.concatenate([velocity, angle_rate + tilt_rates], axis=-2),
-        acceleration=np.concatenate([acceleration, angle_acceleration + tilt_accelerations], axis=-2),
+        velocity=np.concatenate([velocity, attitude_rate], axis=-2),
+        acceleration=np.concatenate([acceleration, attitude_acceleration], axis=-2),
         tilt_command=tilt_command,
         tilt=tilt,
         input_limited=force_limited | rates_limited,
@@ -538,6 +585,16 @@ def _washout_step(
 
     ca, cb, cc = np.cos(out[3]), np.cos(out[4]), np.cos(out[5])
     sa, sb, sc = np.sin(out[3]), np.sin(out[4]), np.sin(out[5])
+    head = scalars[8]
+    if head != 0.0:  # `lever_arm_acceleration` of `body_rates` / `body_angular_acceleration`, scalar form
+        dr, dp, dy = out[9], out[10], out[11]
+        ar, ap = out[15], out[16]
+        wx, wy, wz = cb * cc * dr + sc * dp, -cb * sc * dr + cc * dp, sb * dr + dy
+        alpha_x = cb * cc * ar + sc * ap + (-sb * cc * dp - cb * sc * dy) * dr + cc * dy * dp
+        alpha_y = -cb * sc * ar + cc * ap + (sb * sc * dp - cb * cc * dy) * dr - sc * dy * dp
+        fx -= head * (alpha_y + wx * wz)
+        fy -= head * (-alpha_x + wy * wz)
+        fz -= head * -(wx * wx + wy * wy)
     vz = fz + gravity
     inertial = (
         cb * cc * fx + -cb * sc * fy + sb * vz,
@@ -571,6 +628,7 @@ class StreamingWashout:
                 wd.tilt_rate_step_rad,
                 GRAVITY_M_S2,
                 wd.first_order_break_rad_s,
+                wd.head_height_m,
             ]
         )
         self._state = np.zeros((_STATE_ROWS, 2))

@@ -216,13 +216,27 @@ def register(app: typer.Typer) -> None:
         generations: int = typer.Option(100, "--generations"),
         population: int = typer.Option(100, "--population"),
         tune_damping: bool = typer.Option(False, "--tune-damping", help="Also tune ξ (one for Formulas 12 and 13)."),
+        tuning_input: str = typer.Option(
+            "suite", "--input", help="suite (the scenario suite) or paper-square-wave (paper §4.2 alone)."
+        ),
+        tilt_min: float = typer.Option(
+            tuning.TILT_COORDINATION_OFF_FRACTION,
+            "--tilt-coordination-min",
+            help="Least fraction of asin(0.2) the §5 step must tilt within 10 s (0: no constraint, as the paper).",
+        ),
         as_json: bool = typer.Option(False, "--json"),
         plot: Path | None = typer.Option(None, "--plot", help="Write PNG plots (paper Figure 15) to this folder."),
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
-        """Tune [ω_a, ω_a′, ω_h] with NSGA-II on the paper's square wave; report baseline vs knee."""
+        """Tune [ω_a, ω_a′, ω_h] with NSGA-II on the scenario suite (or the paper's square wave); report
+        baseline vs knee, any bound the knee sits on, and whether tilt coordination stayed on."""
         try:
-            problem = tuning.WashoutTuningProblem(twin=twin_from_option(robot_file), tune_damping=tune_damping)
+            problem = tuning.WashoutTuningProblem(
+                twin=twin_from_option(robot_file),
+                tune_damping=tune_damping,
+                tuning_input=tuning_input,
+                tilt_coordination_min_fraction=tilt_min,
+            )
             with progress_bar("NSGA-II generations", generations) as advance:
                 result = tuning.tune(
                     seed=seed, generations=generations, population=population, problem=problem, progress=advance
@@ -250,6 +264,12 @@ def register(app: typer.Typer) -> None:
                 f"Pareto front: {d['pareto_size']} points; improves on baseline: {d['improves_on_baseline']}; "
                 f"within stroke (full IK): {d['optimized_within_stroke']}; "
                 f"every IK limit: {d['optimized_reachable']}; {d['wall_s']:.1f} s"
+            )
+            bounds = ", ".join(f"{name} on its {side} bound" for name, side in d["bounds_hit"].items()) or "none"
+            console.print(f"bounds hit: {bounds}")
+            state = "OFF" if d["tilt_coordination_off"] else "on"
+            console.print(
+                f"tilt coordination {state}: §5 step tilts {d['tilt_coordination_fraction']:.2f} of asin(0.2)"
             )
             for path in d.get("plots", []):
                 console.print(f"plot: {path}")

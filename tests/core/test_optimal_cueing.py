@@ -141,3 +141,18 @@ def test_bad_cues_are_refused(workspace) -> None:
         planner.plan(np.zeros((100, 2)), np.zeros((100, 3)), DT)
     with pytest.raises(CueingError, match="duration_s"):
         planner.plan(np.zeros((50, 3)), np.zeros((50, 3)), DT)
+
+
+def test_a_clearance_function_is_a_constraint_of_the_plan(workspace: CueingWorkspace) -> None:
+    """The hook for the twin's collision model: here a fake wall 2 cm to each side of neutral."""
+    force, rates = _smooth_sine(8.0, 0.03, 0.3)  # asks for 3 cm of sway
+    walled = CueingWorkspace(
+        workspace.twin,
+        workspace.limits,
+        workspace.stroke_min_m,
+        workspace.stroke_max_m,
+        clearance_m=lambda poses: 0.02 - np.abs(poses[:, 1]),
+        clearance_min_m=0.0,
+    )
+    plan = OptimalCueingPlanner(walled).plan(force, rates, DT)
+    assert 0.015 < np.max(np.abs(plan.pose[:, 1])) <= 0.02

@@ -33,7 +33,7 @@ def test_paper_square_wave_input() -> None:
 def test_population_is_evaluated_as_one_array_equal_to_one_by_one(problem: WashoutTuningProblem) -> None:
     x = np.array([[2.0, 0.5, 0.4], [0.8, 0.1, 0.2], [4.0, 1.5, 1.5]])
     objectives, constraints = problem.objectives_and_constraints(x)
-    assert objectives.shape == (3, 2) and constraints.shape == (3, 2)
+    assert objectives.shape == (3, 2) and constraints.shape == (3, 3)  # stroke, tilt rate, tilt coordination
     for row in range(3):
         single_f, single_g = problem.objectives_and_constraints(x[row : row + 1])
         assert single_f[0] == pytest.approx(objectives[row], rel=1e-12)
@@ -96,7 +96,8 @@ def test_an_optimum_on_a_bound_is_reported() -> None:
     """Issue 14 defect: the 100 × 100 optimum sat on ω_a′ = 0.02 and ω_h = 0.05 without a word."""
     from core.tuning import bounds_hit
 
-    problem = WashoutTuningProblem(bounds={"tilt_break_rad_s": (0.05, 5.0)})
+    original = {"translational_first_order_break_rad_s": (0.02, 2.0), "tilt_break_rad_s": (0.05, 5.0)}
+    problem = WashoutTuningProblem(bounds=original, tuning_input="paper-square-wave")
     on_bounds = problem.parameters(np.array([2.7, 0.02, 0.05]))[0]
     hits = bounds_hit(problem, on_bounds)
     assert hits == {"translational_first_order_break_rad_s": "lower", "tilt_break_rad_s": "lower"}
@@ -120,3 +121,22 @@ def test_tuning_result_says_which_bounds_and_whether_tilt_coordination_is_off(re
         __import__("core.tuning", fromlist=["x"]).tilt_coordination_fraction(result.optimized)
     )
     assert summary["tilt_coordination_off"] is (summary["tilt_coordination_fraction"] < 0.5)
+
+
+def test_the_tilt_coordination_constraint_refuses_a_switched_off_tilt(problem: WashoutTuningProblem) -> None:
+    _, constraints = problem.objectives_and_constraints(np.array([[2.7, 0.02, 0.05], [2.0, 0.5, 1.0]]))
+    assert constraints[0, 2] > 0.0 > constraints[1, 2]
+    assert problem.tilt_coordination_min_fraction == 0.5
+    with pytest.raises(ParameterError, match="tuning_input"):
+        WashoutTuningProblem(tuning_input="one square wave")
+
+
+def test_the_default_input_is_the_scenario_suite() -> None:
+    from core.tuning import tuning_suite
+
+    force, rates = tuning_suite(0.02)
+    suite = WashoutTuningProblem()
+    assert suite.tuning_input == "suite" and np.array_equal(suite.specific_force, force)
+    assert np.any(rates != 0.0)  # the perturbation pulses tilt too
+    lateral_step = np.isclose(force[:, 1], 0.2 * 9.80665)
+    assert lateral_step.sum() * 0.02 == pytest.approx(10.0, abs=0.05)  # the paper's §5 step is in it

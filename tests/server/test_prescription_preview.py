@@ -17,9 +17,24 @@ TWIN = default_twin()
 SINE = {"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.5}, "duration_s": 6.0}
 
 
-def _preview(segments: list[dict], control_rate_hz: int = 250) -> dict:
-    prescription = validated_prescription(segments, limits=robot_limits(TWIN))
+def _preview(segments: list[dict], control_rate_hz: int = 250, cueing: str = "classical") -> dict:
+    prescription = validated_prescription(segments, limits=robot_limits(TWIN), cueing=cueing)
     return prescription_preview(prescription, TWIN, control_rate_hz=control_rate_hz)
+
+
+def test_preview_shows_the_chosen_algorithm_perceived_at_the_head() -> None:
+    """Issue 14: the editor's preview compares the perceived cue and what the platform delivers at the head."""
+    errors = {}
+    for cueing in ("classical", "optimal"):
+        preview = _preview([SINE], cueing=cueing)
+        assert preview["cueing"] == cueing and preview["head_height_m"] == 1.6
+        assert preview["verdict"]["accepted"] is True
+        cue = np.array(preview["perceived_cue_m_s2"], dtype=float)
+        delivered = np.array(preview["perceived_platform_m_s2"], dtype=float)
+        assert cue.shape == delivered.shape == (3, len(preview["time_s"]))
+        assert len(preview["perceived_platform_rate_rad_s"]) == 3
+        errors[cueing] = float(np.sqrt(np.mean((delivered - cue) ** 2)))
+    assert errors["optimal"] < 0.5 * errors["classical"]
 
 
 def test_preview_of_a_lateral_sine_moves_the_platform_sideways_within_the_stroke() -> None:
