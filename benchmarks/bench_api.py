@@ -94,7 +94,8 @@ def _free_port() -> int:
         return int(probe.getsockname()[1])
 
 
-def _wait_healthy(base: str, process: subprocess.Popen[bytes], log_path: Path) -> None:
+def wait_healthy(base: str, process: subprocess.Popen[bytes], log_path: Path) -> None:
+    """Until `GET /api/v1/health` answers 200; raises if the server exits or takes over 120 s."""
     deadline = time.monotonic() + 120.0
     while time.monotonic() < deadline:
         if process.poll() is not None:
@@ -127,7 +128,7 @@ def _uvicorn(factory: str, url: str, data_dir: Path, workers: int) -> tuple[subp
     log = log_path.open("wb")
     process = subprocess.Popen(command, env=environment, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
-    _wait_healthy(base, process, log_path)
+    wait_healthy(base, process, log_path)
     return process, base
 
 
