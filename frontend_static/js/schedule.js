@@ -5,7 +5,7 @@
 // (`start_local`), which the service reads in its zone and refuses if it falls in a DST gap or overlap.
 // Weeks are calendar dates (YYYY-MM-DD), computed in UTC date arithmetic so that no browser zone or DST
 // change can move them; the service answers the previous and next week with each week.
-import { get, patch, post, query } from "./api.js";
+import { get, patch, post, query, request } from "./api.js";
 import { banner, clear, field, h, showError, showFieldErrors } from "./ui.js";
 
 const go = (hash) => { location.hash = hash; };
@@ -70,7 +70,45 @@ export async function schedulePage(main, params) {
         h("strong", {}, `${wallTime(b.start_local)}–${wallTime(b.end_local)}`), h("br"), b.patient_name,
         h("br"), `${b.robot} · ${b.status}${conflicts.has(b.id) ? " · CONFLICT" : ""}`))));
   }
-  main.append(days, bookingForm(patients, selectedPatient, zone));
+  main.append(days, bookingForm(patients, selectedPatient, zone), calendarPanel());
+}
+
+// A calendar app cannot log in: each therapist gets a secret subscription link of their own feed,
+// shown once when issued; issuing a new one or revoking ends the old one. Loaded when opened, so that
+// the week itself stays one request.
+function calendarPanel() {
+  const output = h("div", { "aria-live": "polite" });
+  const panel = h("details.panel", {}, h("summary", {}, "Calendar subscription"), output);
+  let loaded = false;
+  panel.addEventListener("toggle", () => {
+    if (panel.open && !loaded) { loaded = true; fillCalendarPanel(output).catch(showError); }
+  });
+  return panel;
+}
+
+async function fillCalendarPanel(output) {
+  const me = await get("/auth/me");
+  const path = `/therapists/${me.id}/calendar-subscription`;
+  const status = await get(path);
+  const message = h("p", {}, status.issued_at
+    ? `A link was issued on ${status.issued_at.slice(0, 10)}; it is shown only once. Issue a new one if it is lost.`
+    : "No subscription link yet.");
+  const revokeButton = h("button.secondary", { type: "button", disabled: !status.issued_at }, "Revoke link");
+  const issue = async () => {
+    try {
+      const issued = await post(path);
+      clear(message).append("Your calendar link (copy it now: it is not shown again): ",
+        h("input.calendar-link", { type: "text", readonly: true, value: issued.url, "aria-label": "Calendar subscription link", onfocus: (e) => e.target.select() }));
+      revokeButton.disabled = false;
+    } catch (error) { showError(error); }
+  };
+  revokeButton.addEventListener("click", async () => {
+    try { await request("DELETE", path); clear(message).append("The link is revoked: calendars using it stop updating."); revokeButton.disabled = true; } catch (error) { showError(error); }
+  });
+  clear(output).append(
+    h("p.muted", {}, "Your own sessions in a calendar app, in the clinic's time zone, with record numbers and no names."),
+    message,
+    h("div.row", {}, h("button.secondary", { type: "button", onclick: issue }, status.issued_at ? "Issue a new link" : "Get calendar link"), revokeButton));
 }
 
 function overlapping(bookings) {

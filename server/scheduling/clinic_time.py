@@ -9,6 +9,7 @@ overlap) is refused with the field, the value and why, never shifted to a neighb
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import os
 from pathlib import Path
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError, available_timezones
@@ -37,8 +38,13 @@ def machine_zone_name() -> str:
     return "UTC"
 
 
+@functools.cache
+def _zone_names() -> frozenset[str]:
+    return frozenset(available_timezones()) | {"UTC"}  # reads the tz database once per process
+
+
 def is_zone_name(name: str) -> bool:
-    if name not in available_timezones() and name != "UTC":
+    if name not in _zone_names():
         return False
     try:
         ZoneInfo(name)

@@ -6,12 +6,15 @@ is fetched in one request."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -84,18 +87,25 @@ def clinic_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Path
         log.close()
 
 
-def _logged_in_page(browser: object, base: str, timezone_id: str) -> object:
-    context = browser.new_context(  # type: ignore[attr-defined]
-        viewport={"width": 1400, "height": 1000}, timezone_id=timezone_id, locale="en-GB"
-    )
-    page = context.new_page()
-    page.set_default_timeout(20_000)
-    page.goto(f"{base}/#/login")
-    page.get_by_label("Username").fill(USER[0])
-    page.get_by_label("Password").fill(USER[1])
-    page.get_by_role("button", name="Log in").click()
-    expect(page.get_by_role("heading", name="Patients")).to_be_visible()
-    return page
+@contextlib.contextmanager
+def _logged_in(chromium_path: Path, base: str, timezone_id: str) -> Iterator[Any]:
+    """A logged-in page of Debian's chromium with the browser's clock in `timezone_id`."""
+    with playwright_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
+        try:
+            context = browser.new_context(
+                viewport={"width": 1400, "height": 1000}, timezone_id=timezone_id, locale="en-GB"
+            )
+            page = context.new_page()
+            page.set_default_timeout(20_000)
+            page.goto(f"{base}/#/login")
+            page.get_by_label("Username").fill(USER[0])
+            page.get_by_label("Password").fill(USER[1])
+            page.get_by_role("button", name="Log in").click()
+            expect(page.get_by_role("heading", name="Patients")).to_be_visible()
+            yield page
+        finally:
+            browser.close()
 
 
 def _heading(page: object) -> object:
@@ -107,61 +117,64 @@ def test_week_navigation_and_booking_in_clinic_local_time(
 ) -> None:
     base = str(clinic_service["base_url"])
     second_patient = clinic_service["patients"][1]  # type: ignore[index]
-    with playwright_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
-        try:
-            page = _logged_in_page(browser, base, CLINIC_ZONE)
-            errors: list[str] = []
-            page.on("pageerror", lambda error: errors.append(str(error)))
-            schedule_requests: list[str] = []
-            page.on(
-                "request",
-                lambda request: (
-                    schedule_requests.append(request.url)
-                    if "/api/v1/sessions" in request.url or "/api/v1/schedule" in request.url
-                    else None
-                ),
-            )
-            # The week before the spring change (clocks go forward on Sunday 30 March 2031).
-            page.goto(f"{base}/#/schedule?week=2031-03-26")
-            expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
-            page.get_by_role("button", name="Next week").click()
-            expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
-            page.get_by_role("button", name="Next week").click()
-            expect(_heading(page)).to_have_text("Schedule: week of 7 April 2031")
-            page.get_by_role("button", name="Previous week").click()
-            expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
-            page.get_by_role("button", name="Previous week").click()
-            expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
-            page.get_by_role("button", name="Previous week").click()
-            expect(_heading(page)).to_have_text("Schedule: week of 17 March 2031")
+    with _logged_in(chromium_path, base, CLINIC_ZONE) as page:
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        schedule_requests: list[str] = []
+        page.on(
+            "request",
+            lambda request: (
+                schedule_requests.append(request.url)
+                if "/api/v1/sessions" in request.url or "/api/v1/schedule" in request.url
+                else None
+            ),
+        )
+        # The week before the spring change (clocks go forward on Sunday 30 March 2031).
+        page.goto(f"{base}/#/schedule?week=2031-03-26")
+        expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
+        page.get_by_role("button", name="Next week").click()
+        expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
+        page.get_by_role("button", name="Next week").click()
+        expect(_heading(page)).to_have_text("Schedule: week of 7 April 2031")
+        page.get_by_role("button", name="Previous week").click()
+        expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
+        page.get_by_role("button", name="Previous week").click()
+        expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
+        page.get_by_role("button", name="Previous week").click()
+        expect(_heading(page)).to_have_text("Schedule: week of 17 March 2031")
 
-            # Book the second patient on Wednesday 2 April, 10:00 clinic time, from the week of 17 March.
-            form = page.locator("form:has(h2:text('Book a session'))")
-            form.get_by_label("Patient").select_option(str(second_patient["id"]))
-            expect(form.get_by_label("Prescription").locator("option")).to_have_count(1)
-            form.get_by_label("Start").fill("2031-04-02T10:00")
-            form.get_by_label("Duration").fill("30")
-            schedule_requests.clear()
-            form.get_by_role("button", name="Book session").click()
-            expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
-            day = page.get_by_role("region", name="Wednesday, 2 April 2031")
-            expect(day.get_by_role("button", name="10:00–10:30")).to_be_visible()
-            expect(day).to_contain_text("Bert Zweiter")
-            expect(page.locator("form:has(h2:text('Book a session'))").get_by_label("Patient")).to_have_value(
-                str(second_patient["id"])
-            )
-            week_loads = [url for url in schedule_requests if "/api/v1/schedule/week" in url]
-            assert len(week_loads) == 1 and len(schedule_requests) == 2, schedule_requests  # the POST, one week GET
+        # Book the second patient on Wednesday 2 April, 10:00 clinic time, from the week of 17 March.
+        form = page.locator("form:has(h2:text('Book a session'))")
+        form.get_by_label("Patient").select_option(str(second_patient["id"]))
+        expect(form.get_by_label("Prescription").locator("option")).to_have_count(1)
+        form.get_by_label("Start").fill("2031-04-02T10:00")
+        form.get_by_label("Duration").fill("30")
+        schedule_requests.clear()
+        form.get_by_role("button", name="Book session").click()
+        expect(_heading(page)).to_have_text("Schedule: week of 31 March 2031")
+        day = page.get_by_role("region", name="Wednesday, 2 April 2031")
+        expect(day.get_by_role("button", name="10:00–10:30")).to_be_visible()
+        expect(day).to_contain_text("Bert Zweiter")
+        expect(page.locator("form:has(h2:text('Book a session'))").get_by_label("Patient")).to_have_value(
+            str(second_patient["id"])
+        )
+        week_loads = [url for url in schedule_requests if "/api/v1/schedule/week" in url]
+        assert len(week_loads) == 1 and len(schedule_requests) == 2, schedule_requests  # the POST, one week GET
 
-            # A time in the spring gap is refused next to the field, never shifted.
-            form = page.locator("form:has(h2:text('Book a session'))")
-            form.get_by_label("Start").fill("2031-03-30T02:30")
-            form.get_by_role("button", name="Book session").click()
-            expect(form).to_contain_text("does not exist in Europe/Berlin")
-            assert errors == []
-        finally:
-            browser.close()
+        # A time in the spring gap is refused next to the field, never shifted.
+        form = page.locator("form:has(h2:text('Book a session'))")
+        form.get_by_label("Start").fill("2031-03-30T02:30")
+        form.get_by_role("button", name="Book session").click()
+        expect(form).to_contain_text("does not exist in Europe/Berlin")
+
+        # The therapist's own calendar link, for calendar apps that cannot log in.
+        page.get_by_text("Calendar subscription").click()
+        page.get_by_role("button", name="Get calendar link").click()
+        link = page.get_by_label("Calendar subscription link")
+        expect(link).to_have_value(re.compile(r"^http://127\.0\.0\.1:\d+/api/v1/calendar/[\w-]+\.ics$"))
+        feed = httpx.get(link.input_value())  # no login
+        assert feed.status_code == 200 and "DTSTART;TZID=Europe/Berlin:20310402T100000" in feed.text
+        assert errors == []
 
 
 def test_a_browser_in_another_zone_shows_and_enters_clinic_time(
@@ -169,21 +182,16 @@ def test_a_browser_in_another_zone_shows_and_enters_clinic_time(
 ) -> None:
     base = str(clinic_service["base_url"])
     first_patient = clinic_service["patients"][0]  # type: ignore[index]
-    with playwright_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
-        try:
-            page = _logged_in_page(browser, base, "America/New_York")
-            page.goto(f"{base}/#/schedule?week=2031-04-14&patient={first_patient['id']}")
-            expect(_heading(page)).to_have_text("Schedule: week of 14 April 2031")
-            form = page.locator("form:has(h2:text('Book a session'))")
-            expect(form.get_by_label("Prescription").locator("option")).to_have_count(1)
-            form.get_by_label("Start").fill("2031-04-15T09:15")
-            form.get_by_role("button", name="Book session").click()
-            day = page.get_by_role("region", name="Tuesday, 15 April 2031")
-            expect(day.get_by_role("button", name="09:15–09:45")).to_be_visible()
-            expect(page.get_by_text("Times are Europe/Berlin time")).to_be_visible()
-        finally:
-            browser.close()
+    with _logged_in(chromium_path, base, "America/New_York") as page:
+        page.goto(f"{base}/#/schedule?week=2031-04-14&patient={first_patient['id']}")
+        expect(_heading(page)).to_have_text("Schedule: week of 14 April 2031")
+        form = page.locator("form:has(h2:text('Book a session'))")
+        expect(form.get_by_label("Prescription").locator("option")).to_have_count(1)
+        form.get_by_label("Start").fill("2031-04-15T09:15")
+        form.get_by_role("button", name="Book session").click()
+        day = page.get_by_role("region", name="Tuesday, 15 April 2031")
+        expect(day.get_by_role("button", name="09:15–09:45")).to_be_visible()
+        expect(page.get_by_text("Times are Europe/Berlin time")).to_be_visible()
     booked = httpx.get(
         f"{base}/api/v1/sessions",
         params={"patient_id": first_patient["id"]},

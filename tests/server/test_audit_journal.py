@@ -19,6 +19,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
 
+from benchmarks.bench_api import wait_healthy
 from server.app import create_app
 from server.audit.journal import AuditJournal
 from server.audit.models import AuditEntry
@@ -98,21 +99,10 @@ def _serve(data_dir: Path, port: int, **environment: str) -> subprocess.Popen[by
         **environment,
     }
     command = [sys.executable, "-m", "uvicorn", "server.app:create_app", "--factory", "--port", str(port)]
-    log = (data_dir / f"serve-{port}.log").open("wb")
-    return subprocess.Popen(command, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
-
-
-def _wait_up(base: str, process: subprocess.Popen[bytes]) -> None:
-    deadline = time.monotonic() + 120.0
-    while time.monotonic() < deadline:
-        assert process.poll() is None, "the service exited"
-        try:
-            if httpx.get(f"{base}/api/v1/health", timeout=1.0).status_code == 200:
-                return
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise AssertionError("the service did not come up")
+    log_path = data_dir / f"serve-{port}.log"
+    process = subprocess.Popen(command, cwd=ROOT, env=env, stdout=log_path.open("wb"), stderr=subprocess.STDOUT)
+    wait_healthy(f"http://127.0.0.1:{port}", process, log_path)
+    return process
 
 
 @pytest.mark.slow
@@ -127,7 +117,6 @@ def test_a_process_killed_after_answering_a_read_loses_no_audit_record(tmp_path:
     # The drainer would run only after an hour: the kill lands between the read and the database write.
     first = _serve(tmp_path, port, SSP_REHAB_AUDIT_DRAIN_INTERVAL_S="3600")
     try:
-        _wait_up(base, first)
         login = httpx.post(f"{base}/api/v1/auth/login", json={"username": "auditor", "password": "auditor-password-1"})
         headers = {"Authorization": f"Bearer {login.json()['access_token']}"}
         created = httpx.post(f"{base}/api/v1/patients", json=PATIENT, headers=headers)
@@ -141,7 +130,6 @@ def test_a_process_killed_after_answering_a_read_loses_no_audit_record(tmp_path:
     assert reads == 0  # the record exists only in the journal now
     second = _serve(tmp_path, port)
     try:
-        _wait_up(base, second)
         entries = httpx.get(f"{base}/api/v1/audit", params={"resource_type": "patient"}, headers=headers).json()
         assert [(e["action"], e["resource_id"]) for e in entries] == [("read", patient_id), ("create", patient_id)]
     finally:
