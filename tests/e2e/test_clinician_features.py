@@ -154,7 +154,7 @@ def test_3d_view_shows_presets_without_viser_developer_panel_or_notice(console: 
     frame = page.frame_locator("#viz-frame")
     expect(frame.locator("canvas").first).to_be_visible(timeout=60_000)
     expect(frame.get_by_role("button", name="Front")).to_be_visible(timeout=30_000)  # the panel shows presets
-    expect(frame.get_by_text("Dev Settings")).to_be_hidden()
+    expect(frame.get_by_text("Dev Settings")).to_be_hidden(timeout=20_000)  # after viser's collapse animation
     # The FRONT / LEFT / RIGHT labels are drawn in the WebGL canvas (not DOM text): see test_viz_scene.py.
     page.wait_for_timeout(6000)  # viser shows its notice at load; the view takes it away
     expect(frame.get_by_text("Software WebGL rendering detected")).to_have_count(0)
@@ -198,6 +198,8 @@ def test_booking_conflicts_are_quoted_in_local_time(console: Any, clinic: dict[s
     taken = dt.datetime.fromisoformat(clinic["booking"]["start"])
     local = taken.astimezone(ZoneInfo("Europe/Berlin"))
     session.go(f"#/schedule?week={local.date().isoformat()}")
+    page.get_by_label("Patient", exact=True).select_option(str(clinic["patient"]["id"]))
+    expect(page.get_by_label("Prescription").locator("option")).not_to_have_count(0)  # loaded for the patient
     page.get_by_label("Start").fill(local.strftime("%Y-%m-%dT%H:%M"))  # the same robot at the same time
     page.get_by_role("button", name="Book session").click()
     message = field_error(page, "Start")
