@@ -12,7 +12,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from core.fidelity import FidelityScales, fidelity_of_signals
+from core.fidelity import FidelityScales, fidelity_of_signals, platform_specific_force
 from core.robot import TwinRobot
 from core.vestibular import VestibularModel
 from server.errors import ConflictError
@@ -85,8 +85,6 @@ def cue_quality(columns: dict[str, np.ndarray]) -> dict[str, Any] | None:
     metrics = fidelity_of_signals(
         pose, velocity, acceleration, cue_force, cue_rate, VestibularModel(sample_period_s=period_s), FidelityScales()
     )
-    from core.fidelity import platform_specific_force
-
     delivered = platform_specific_force(pose, acceleration)
     correlation = {}
     for index, axis in enumerate(AXES[:2]):
