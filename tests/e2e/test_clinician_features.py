@@ -12,7 +12,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import THERAPIST, field_error, fill_patient, turn_engineering_on
+from tests.e2e.conftest import ARTIFACTS, THERAPIST, field_error, fill_patient, turn_engineering_on
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -187,6 +187,8 @@ def test_history_links_the_pdf_report_of_a_run(console: Any, clinic: dict[str, A
     expect(link).to_be_visible()
     response = page.request.get(clinic["base_url"] + link.get_attribute("href"))
     assert response.status == 200 and response.headers["content-type"] == "application/pdf"
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    (ARTIFACTS / "run-report.pdf").write_bytes(response.body())  # for a human look
     text = " ".join(" ".join(p.extract_text() for p in PdfReader(io.BytesIO(response.body())).pages).split())
     assert "Jürgen Äbischer" in text and "fall detected" in text and "harness load 412 N" in text, text[:2000]
     assert "25.0 s" in text, text[:2000]

@@ -105,7 +105,8 @@ def test_run_report_pdf_holds_the_runs_facts(robot_client: TestClient, seed: See
         "Lateral sway, version 1", "sine", "amplitude 0.50 m/s²", "frequency 0.50 Hz", "30 s",
         "fall detected", "harness load 310 N", "1.5 s into the run",
         "RMS distance", "95 % ellipse area", "Cue quality", "Perception error",
-        SOAP["subjective"], SOAP["plan"], "patient checked",
+        SOAP["subjective"], SOAP["plan"], "patient checked", "Acknowledged by therapist at",
+        "Therapist notes (SOAP), by therapist",
     ):  # fmt: skip
         assert fact in flat, f"{fact!r} is not in the report: {flat[:3000]}"
     assert robot_client.get("/api/v1/runs/999999/report.pdf", headers=seed.headers()).status_code == 404
