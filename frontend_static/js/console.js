@@ -4,7 +4,7 @@ import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
 import { CLINICAL_EVENTS, OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
 import { metric } from "./pages.js";
-import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, fmt, fmtDateTime, h, showError, table } from "./ui.js";
+import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, engineeringOn, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
 const GRAVITY_M_S2 = 9.80665;
 const EXPORT_FORMATS = [["csv", "CSV (zip)"], ["parquet", "Parquet"], ["json", "JSON"], ["c3d", "C3D"]];
@@ -214,6 +214,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   const viz = await get("/viz").catch(() => ({ available: false, detail: "the 3D view status is unavailable" }));
   if (viz.available) {
     post("/viz/figure", { patient_id: booking.patient_id }).catch(() => null); // the figure takes the patient's height
+    post("/viz/controls", { visible: engineeringOn() }).catch(() => null); // viser's panel follows the switch
     vizHost.append(h("iframe.viz-frame#viz-frame", { src: "/api/v1/viz/view/", title: "Live 3D view of the twin robot and the patient", loading: "eager" }));
   } else {
     vizHost.append(h("p.panel", {}, `3D view unavailable: ${viz.detail}`));
@@ -397,6 +398,8 @@ export async function sessionPage(main, sessionId, cleanup) {
       banner("info", "Reset sent: the robot is ready once it shows READY. A reset never starts motion.");
     } catch (error) { showError(error, "command"); }
   });
+  const onEngineering = (event) => { post("/viz/controls", { visible: event.detail }).catch(() => null); };
+  window.addEventListener("ssp:engineering", onEngineering);
   const onEstop = () => { setTimeout(refreshRuns, 600); setTimeout(refreshRuns, 2500); };
   window.addEventListener("ssp:estop", onEstop);
 
@@ -410,6 +413,7 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (socket) socket.close();
     clearInterval(rateTimer); clearInterval(vizTimer); clearInterval(runsTimer);
     window.removeEventListener("ssp:estop", onEstop);
+    window.removeEventListener("ssp:engineering", onEngineering);
     window.removeEventListener("resize", onResize);
   });
 }

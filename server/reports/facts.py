@@ -12,7 +12,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from core.fidelity import FidelityScales, fidelity_of_signals
+from core.fidelity import FidelityScales, fidelity_of_signals, platform_specific_force
 from core.robot import TwinRobot
 from core.vestibular import VestibularModel
 from server.errors import ConflictError
@@ -25,6 +25,7 @@ from server.sessions.balance import run_balance
 from server.sessions.logs import telemetry_columns
 from server.sessions.models import SessionEvent, SessionRun
 from server.sessions.service import get_run
+from server.users.models import User
 
 AXES = ("x", "y", "z")
 MIN_SAMPLES_FOR_QUALITY = 16
@@ -50,6 +51,7 @@ class RunFacts:
     sway: dict[str, float] | None = None
     cue_quality: dict[str, Any] | None = None
     series: dict[str, np.ndarray] = field(default_factory=dict)  # time into the run, COP, cue, loads
+    user_names: dict[int, str] = field(default_factory=dict)  # who acknowledged, who wrote the notes
 
     @property
     def falls(self) -> list[EventFact]:
@@ -85,8 +87,6 @@ def cue_quality(columns: dict[str, np.ndarray]) -> dict[str, Any] | None:
     metrics = fidelity_of_signals(
         pose, velocity, acceleration, cue_force, cue_rate, VestibularModel(sample_period_s=period_s), FidelityScales()
     )
-    from core.fidelity import platform_specific_force
-
     delivered = platform_specific_force(pose, acceleration)
     correlation = {}
     for index, axis in enumerate(AXES[:2]):
@@ -122,7 +122,12 @@ def run_facts(*, session: Session, run_id: int, twin: TwinRobot) -> RunFacts:
     stored = session.scalars(select(SessionEvent).where(SessionEvent.run_id == run.id).order_by(SessionEvent.id)).all()
     start = next((event for event in stored if event.kind == "start"), None)
     events = [EventFact(e.kind, time_into_run(e, start, run), e.utc, e.detector, dict(e.details)) for e in stored]
-    facts = RunFacts(run, patient, prescription.name, version, events, review_of(session, run))
+    review = review_of(session, run)
+    people = {review.acknowledgement.user_id if review.acknowledgement else None, review.notes.author_id} - {None}
+    user_names = {
+        user.id: user.full_name or user.username for user in session.scalars(select(User).where(User.id.in_(people)))
+    }
+    facts = RunFacts(run, patient, prescription.name, version, events, review, user_names=user_names)
     try:
         columns = telemetry_columns(session=session, run_id=run.id)
     except ConflictError:

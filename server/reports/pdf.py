@@ -186,8 +186,8 @@ def run_report_pdf(facts: RunFacts) -> bytes:
     if acknowledgement is not None:
         story.append(
             _p(
-                f"Acknowledged by user {acknowledgement.user_id} at {_local(acknowledgement.utc)}: "
-                f"{acknowledgement.note}"
+                f"Acknowledged by {facts.user_names.get(acknowledgement.user_id or 0, 'a deleted account')} at "
+                f"{_local(acknowledgement.utc)}: {acknowledgement.note}"
             )
         )
     elif facts.review.needs_acknowledgement:
@@ -234,7 +234,8 @@ def run_report_pdf(facts: RunFacts) -> bytes:
         story.append(_p("Not enough telemetry for the cue quality."))
     story += _run_charts(facts)
     notes = facts.review.notes
-    story.append(_p("Therapist notes (SOAP)", "Heading2"))
+    author = facts.user_names.get(notes.author_id or 0)
+    story.append(_p(f"Therapist notes (SOAP){f', by {author}' if author else ''}", "Heading2"))
     story.append(
         _table(
             [

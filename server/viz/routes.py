@@ -44,6 +44,12 @@ class CameraRequest(RequestModel):
     model_config = ConfigDict(json_schema_extra={"examples": [{"preset": "front"}]})
 
 
+class ControlsRequest(RequestModel):
+    visible: bool = Field(description="Show viser's own control panel (the console's engineering switch).")
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"visible": True}]})
+
+
 class FigureRequest(RequestModel):
     patient_id: Annotated[int, Field(ge=1, le=MAX_ID, description="The figure takes this patient's height.")]
 
@@ -103,6 +109,14 @@ def set_camera(data: CameraRequest, request: Request) -> dict[str, Any]:
     """Look from a preset: front (where the patient faces), left or right side, from above, or the overview."""
     view = _view(request)
     view.set_camera(data.preset)
+    return view.status()
+
+
+@router.post("/controls", responses={503: {"description": "No 3D view"}})
+def set_controls(data: ControlsRequest, request: Request) -> dict[str, Any]:
+    """Expand or minimize viser's control panel in the 3D view (camera presets, viser's developer settings)."""
+    view = _view(request)
+    view.set_controls_visible(data.visible)
     return view.status()
 
 

@@ -125,6 +125,7 @@ class LiveView:
         self.server: Any = None
         self.scene: TwinScene | None = None
         self.camera_preset = "oblique"
+        self.controls_visible = False
 
     def start(self) -> None:
         import viser
@@ -146,6 +147,7 @@ class LiveView:
                 button = self.server.gui.add_button(label)
                 button.on_click(lambda _event, preset=preset: self.set_camera(preset))
         self.server.on_client_connect(self._hide_software_webgl_notice)
+        self.set_controls_visible(False)  # viser's panel is an engineering tool: shown with the console's switch
         self._thread = threading.Thread(target=self._run, name="viz-feed", daemon=True)
         self._thread.start()
         logger.info("3D view on port %d at %.0f Hz", self.port, self.rate_hz)
@@ -175,6 +177,15 @@ class LiveView:
                 client.camera.position = position
                 client.camera.look_at = look_at
         self.camera_preset = preset
+
+    def set_controls_visible(self, visible: bool) -> None:
+        """Expands viser's control panel, or minimizes it to its title bar (every open view and later ones)."""
+        panel = self.server.gui.main_panel
+        if visible:
+            panel.expand()
+        else:
+            panel.minimize()
+        self.controls_visible = visible
 
     def set_figure_height(self, height_m: float) -> bool:
         assert self.scene is not None
@@ -220,6 +231,7 @@ class LiveView:
             "last_tick": self.last_tick,
             "robot_connected": self.latest_state is not None,
             "camera_preset": self.camera_preset,
+            "controls_visible": self.controls_visible,
             "camera_presets": list(CAMERA_PRESETS),
             "figure_height_m": scene.figure_height_m if scene is not None else None,
         }

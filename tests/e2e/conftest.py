@@ -247,7 +247,10 @@ class Console:
     def close(self, failed: bool) -> None:
         if failed:
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
-            self.page.screenshot(path=str(ARTIFACTS / f"defect-{self.name}.png"), full_page=True)
+            try:  # a starved renderer (software WebGL on a loaded machine) may not paint in time
+                self.page.screenshot(path=str(ARTIFACTS / f"defect-{self.name}.png"), full_page=True, timeout=15_000)
+            except Exception as error:
+                (ARTIFACTS / f"defect-{self.name}.txt").write_text(f"no screenshot: {error}")
         self.context.close()
 
 
@@ -282,3 +285,12 @@ def fill_patient(
 def field_error(page: Any, label: str) -> Any:
     """The message shown beside the field with this label."""
     return page.locator(".field:has(#" + page.get_by_label(label).get_attribute("id") + ") .field-error")
+
+
+def turn_engineering_on(page: Any) -> None:
+    """Ticks the top bar's engineering switch. A DOM click: with the 3D view rendering in software on a
+    loaded machine, Playwright's pointer actions wait for animation frames that come too seldom."""
+    from playwright.sync_api import expect
+
+    page.evaluate("() => { const box = document.getElementById('engineering-switch'); if (!box.checked) box.click(); }")
+    expect(page.get_by_label("Engineering details")).to_be_checked()

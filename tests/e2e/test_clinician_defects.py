@@ -12,7 +12,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import THERAPIST, VIEWPORTS, field_error, fill_patient
+from tests.e2e.conftest import THERAPIST, VIEWPORTS, field_error, fill_patient, turn_engineering_on
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -321,7 +321,7 @@ def test_events_in_words_and_engineering_behind_a_switch(console: Any, clinic: d
     expect(row).to_contain_text("25.0 s")  # time into the session
     expect(row.locator("details")).not_to_have_attribute("open", "")
     expect(page.get_by_text("Tick compute time")).to_be_hidden()
-    page.get_by_label("Engineering details").check()
+    turn_engineering_on(page)
     expect(page.get_by_text("Tick compute time")).to_be_visible()
 
 

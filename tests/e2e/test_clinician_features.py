@@ -12,7 +12,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import THERAPIST, field_error, fill_patient
+from tests.e2e.conftest import ARTIFACTS, THERAPIST, field_error, fill_patient, turn_engineering_on
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -153,14 +153,17 @@ def test_3d_view_shows_presets_without_viser_developer_panel_or_notice(console: 
     session.go(f"#/session/{clinic['booking']['id']}")
     frame = page.frame_locator("#viz-frame")
     expect(frame.locator("canvas").first).to_be_visible(timeout=60_000)
-    expect(frame.get_by_role("button", name="Front")).to_be_visible(timeout=30_000)  # the panel shows presets
-    expect(frame.get_by_text("Dev Settings")).to_be_hidden()
+    expect(frame.get_by_text("ssp-rehab 3D view")).to_be_visible(timeout=30_000)  # viser's panel, minimized
+    expect(frame.get_by_role("button", name="Front")).to_be_hidden(timeout=20_000)
+    turn_engineering_on(page)
+    expect(frame.get_by_role("button", name="Front")).to_be_visible(timeout=20_000)  # the panel shows presets
+    expect(frame.get_by_text("Dev Settings")).to_be_hidden(timeout=20_000)  # after viser's collapse animation
     # The FRONT / LEFT / RIGHT labels are drawn in the WebGL canvas (not DOM text): see test_viz_scene.py.
     page.wait_for_timeout(6000)  # viser shows its notice at load; the view takes it away
     expect(frame.get_by_text("Software WebGL rendering detected")).to_have_count(0)
     page.locator(".camera-presets").get_by_role("button", name="Left side").click()
     status = _viz_status(clinic)
-    assert status["camera_preset"] == "left", status
+    assert status["camera_preset"] == "left" and status["controls_visible"] is True, status
     assert status["figure_height_m"] == pytest.approx(clinic["patient"]["height_m"]), status
 
 
@@ -184,6 +187,8 @@ def test_history_links_the_pdf_report_of_a_run(console: Any, clinic: dict[str, A
     expect(link).to_be_visible()
     response = page.request.get(clinic["base_url"] + link.get_attribute("href"))
     assert response.status == 200 and response.headers["content-type"] == "application/pdf"
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    (ARTIFACTS / "run-report.pdf").write_bytes(response.body())  # for a human look
     text = " ".join(" ".join(p.extract_text() for p in PdfReader(io.BytesIO(response.body())).pages).split())
     assert "Jürgen Äbischer" in text and "fall detected" in text and "harness load 412 N" in text, text[:2000]
     assert "25.0 s" in text, text[:2000]
@@ -198,6 +203,8 @@ def test_booking_conflicts_are_quoted_in_local_time(console: Any, clinic: dict[s
     taken = dt.datetime.fromisoformat(clinic["booking"]["start"])
     local = taken.astimezone(ZoneInfo("Europe/Berlin"))
     session.go(f"#/schedule?week={local.date().isoformat()}")
+    page.get_by_label("Patient", exact=True).select_option(str(clinic["patient"]["id"]))
+    expect(page.get_by_label("Prescription").locator("option")).not_to_have_count(0)  # loaded for the patient
     page.get_by_label("Start").fill(local.strftime("%Y-%m-%dT%H:%M"))  # the same robot at the same time
     page.get_by_role("button", name="Book session").click()
     message = field_error(page, "Start")

@@ -105,7 +105,8 @@ def test_run_report_pdf_holds_the_runs_facts(robot_client: TestClient, seed: See
         "Lateral sway, version 1", "sine", "amplitude 0.50 m/s²", "frequency 0.50 Hz", "30 s",
         "fall detected", "harness load 310 N", "1.5 s into the run",
         "RMS distance", "95 % ellipse area", "Cue quality", "Perception error",
-        SOAP["subjective"], SOAP["plan"], "patient checked",
+        SOAP["subjective"], SOAP["plan"], "patient checked", "Acknowledged by therapist at",
+        "Therapist notes (SOAP), by therapist",
     ):  # fmt: skip
         assert fact in flat, f"{fact!r} is not in the report: {flat[:3000]}"
     assert robot_client.get("/api/v1/runs/999999/report.pdf", headers=seed.headers()).status_code == 404
@@ -197,3 +198,27 @@ def test_the_robot_does_not_start_again_before_the_fall_is_acknowledged(
     started = robot_client.post(f"/api/v1/sessions/{booking['id']}/start", headers=seed.headers())
     assert started.status_code == 200, started.text
     assert fake_worker.command_names()[len(commands_before) :] == ["load_prescription", "start_motion"]
+
+
+def test_cue_quality_is_near_zero_when_the_platform_delivers_the_cue_and_grows_when_it_does_not() -> None:
+    """A platform swaying x = A sin(ωt) delivers a specific force −Aω² sin(ωt) (no tilt): commanded that
+    way, the perceived error is a small fraction of the cue; commanded twice as strong, it is not."""
+    import numpy as np
+
+    from server.reports.facts import cue_quality
+
+    rate_hz, amplitude_m, omega = 250.0, 0.02, 2 * np.pi * 0.5
+    time_s = np.arange(0, 20, 1 / rate_hz)
+    pose = np.zeros((len(time_s), 6))
+    pose[:, 0] = amplitude_m * np.sin(omega * time_s)
+    delivered = np.zeros((len(time_s), 3))
+    delivered[:, 0] = -amplitude_m * omega**2 * np.sin(omega * time_s)
+    columns = {"time_s": time_s, "stance_pose": pose, "cue_angular_velocity_rad_s": np.zeros((len(time_s), 3))}
+    matched = cue_quality({**columns, "cue_specific_force_m_s2": delivered})
+    doubled = cue_quality({**columns, "cue_specific_force_m_s2": 2 * delivered})
+    assert matched is not None and doubled is not None
+    cue_rms = matched["cue_rms_m_s2"]["x"]
+    assert matched["perceived_error_rms_m_s2"]["x"] < 0.05 * cue_rms
+    assert matched["correlation"]["x"] > 0.999 and matched["correlation"]["y"] is None  # no y motion
+    assert doubled["perceived_error_rms_m_s2"]["x"] > 10 * matched["perceived_error_rms_m_s2"]["x"]
+    assert doubled["perception_error_thresholds"] > matched["perception_error_thresholds"]

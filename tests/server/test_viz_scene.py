@@ -301,3 +301,23 @@ def test_camera_presets_move_every_open_view_and_later_ones() -> None:
     assert front[0] > abs(front[1]) and left[1] > abs(left[0])  # in front of the patient, at their left
     with pytest.raises(ValueError, match="preset"):
         view.set_camera("behind")
+
+
+class RecordingPanel:
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def minimize(self) -> None:
+        self.calls.append("minimize")
+
+    def expand(self) -> None:
+        self.calls.append("expand")
+
+
+def test_visers_panel_follows_the_engineering_switch() -> None:
+    view, server = _view_with(None)
+    panel = RecordingPanel()
+    server.gui = type("Gui", (), {"main_panel": panel})()  # type: ignore[attr-defined]
+    view.set_controls_visible(True)
+    view.set_controls_visible(False)
+    assert panel.calls == ["expand", "minimize"] and view.status()["controls_visible"] is False
