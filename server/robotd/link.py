@@ -25,7 +25,15 @@ from typing import Any
 from server.realtime.shm import ControlBlock, Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
 from server.robotd.daemon import RobotDaemon, refusal_from_dict
-from server.robotd.status import DaemonState, RobotPaths, RobotStatus, StatusBlock
+from server.robotd.status import (
+    COMMAND_STALE_S,
+    DAEMON_STALE_S,
+    DaemonState,
+    RobotPaths,
+    RobotStatus,
+    StatusBlock,
+    prioritise_liveness_thread,
+)
 from server.sessions.service import RunCommand
 
 log = logging.getLogger("ssp_rehab.robotd")
@@ -99,12 +107,13 @@ class DaemonLink:
 
     # --- state ---------------------------------------------------------------------------------------
 
-    def status(self) -> RobotStatus:
+    def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
+        """What /health shows; commands accept an older beat (`COMMAND_STALE_S`)."""
         if not self._connected.is_set() or self._status is None:
             running = self.paths.lock.exists() and self.paths.pid.exists()
             reason = "the robot daemon is starting" if running else "no robot daemon runs for this robot"
             return RobotStatus(DaemonState.ABSENT, reason)
-        return self._status.read()
+        return self._status.read(stale_s)
 
     def latest_state(self) -> dict[str, Any]:
         state = self._state
@@ -157,7 +166,7 @@ class DaemonLink:
     def _request(self, request: str, /, *, timeout_s: float = COMMAND_TIMEOUT_S, **arguments: Any) -> Any:
         from server.errors import WorkerUnavailableError
 
-        status = self.status()
+        status = self.status(COMMAND_STALE_S)
         if not status.ready:
             raise WorkerUnavailableError(f"robot {self.robot!r} is {status.state.label}: {status.reason}")
         try:
@@ -240,6 +249,7 @@ class DaemonLink:
                 self._state = Seqlock(TELEMETRY_DTYPE, names["state_name"])
 
     def _beat(self, connection: socket.socket) -> None:
+        prioritise_liveness_thread("the robot link's beat")
         while self._socket is connection and not self._closed.is_set():
             try:
                 with self._send_lock:
@@ -276,7 +286,7 @@ class LocalLink:
     async def estop_confirmed(self, sequence: int | None) -> bool:
         return sequence is not None
 
-    def status(self) -> RobotStatus:
+    def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         run = self.daemon.active_run()
         return RobotStatus(DaemonState.READY, "in-process robot", os.getpid(), *(run or (None, None)))
 
