@@ -110,9 +110,10 @@ class DaemonLink:
     def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         """What /health shows; commands accept an older beat (`COMMAND_STALE_S`)."""
         if not self._connected.is_set() or self._status is None:
-            running = self.paths.lock.exists() and self.paths.pid.exists()
-            reason = "the robot daemon is starting" if running else "no robot daemon runs for this robot"
-            return RobotStatus(DaemonState.ABSENT, reason)
+            spawned = self._spawned
+            if spawned is not None and spawned.poll() is None:  # never "no robot" while it warms up
+                return RobotStatus(DaemonState.STARTING, "the robot daemon is starting (loading)", spawned.pid)
+            return RobotStatus(DaemonState.ABSENT, "no robot daemon runs for this robot")
         return self._status.read(stale_s)
 
     def latest_state(self) -> dict[str, Any]:

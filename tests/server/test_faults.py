@@ -18,7 +18,15 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.fault_harness import EVENT_TIMEOUT_S, SHORT_SINE, Console, alive, in_background, wait_for
+from benchmarks.fault_harness import (
+    EVENT_TIMEOUT_S,
+    SHORT_SINE,
+    START_TIMEOUT_S,
+    Console,
+    alive,
+    in_background,
+    wait_for,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -321,3 +329,22 @@ def test_only_the_console_holding_the_session_control_starts_motion(console: Con
         assert taken.status_code == 200, f"the lease was not released with its console: {taken.text}"
     finally:
         second.stop()
+
+
+def test_the_robot_reports_starting_then_ready_and_never_absent_meanwhile(tmp_path: Path) -> None:
+    console = Console(tmp_path / "warming")
+    console.start(wait_robot=False)
+    try:
+        seen: list[tuple[str, str]] = []
+
+        def ready() -> bool:
+            robot = console.health()["robot"]
+            if not seen or seen[-1][0] != robot["state"]:
+                seen.append((robot["state"], robot["reason"]))
+            return robot["state"] == "ready"
+
+        wait_for(ready, START_TIMEOUT_S, "the robot to be ready")
+        states = [state for state, _ in seen]
+        assert states[0] == "starting" and states[-1] == "ready" and set(states) <= {"starting", "ready"}, seen
+    finally:
+        console.stop()
