@@ -61,6 +61,8 @@ class DaemonLink:
         self.paths = paths
         self.environment = environment or {}
         self._spawned = spawned  # the daemon this process started, while it may still be starting
+        self._starting_reason = "the robot daemon is starting (loading)"
+        self._linked_since_spawn = False
         self.robot = paths.robot
         self.restart_absent = restart_absent
         self._last_spawn_s = time.monotonic()
@@ -111,8 +113,9 @@ class DaemonLink:
         """What /health shows; commands accept an older beat (`COMMAND_STALE_S`)."""
         if not self._connected.is_set() or self._status is None:
             spawned = self._spawned
-            if spawned is not None and spawned.poll() is None:  # never "no robot" while it warms up
-                return RobotStatus(DaemonState.STARTING, "the robot daemon is starting (loading)", spawned.pid)
+            # Never "no robot" while the daemon this process started warms up (before its first link).
+            if spawned is not None and not self._linked_since_spawn and spawned.poll() is None:
+                return RobotStatus(DaemonState.STARTING, self._starting_reason, spawned.pid)
             return RobotStatus(DaemonState.ABSENT, "no robot daemon runs for this robot")
         return self._status.read(stale_s)
 
@@ -210,7 +213,11 @@ class DaemonLink:
             return  # still starting up (it takes the lock only once its imports are done)
         if not daemon_running(self.paths):
             log.warning("the robot daemon of %s is gone: starting it again", self.robot)
+            code = self._spawned.poll() if self._spawned is not None else None
+            ended = f"the robot daemon ended (exit code {code})" if code is not None else "the robot daemon ended"
+            self._starting_reason = f"{ended}: the drives stop on their own heartbeat loss; starting it again"
             self._last_spawn_s = time.monotonic()
+            self._linked_since_spawn = False
             self._spawned = spawn_daemon(self.paths, self.environment)
 
     def _link_once(self) -> None:
@@ -226,6 +233,7 @@ class DaemonLink:
             self._attach(hello["result"])
             self.link_id = hello["result"]["link_id"]
             self._socket = connection
+            self._linked_since_spawn = True
             self._connected.set()
             beating = threading.Thread(target=self._beat, args=(connection,), name="robot-link-beat", daemon=True)
             beating.start()
