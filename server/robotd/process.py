@@ -45,7 +45,7 @@ from server.robotd.status import (
 from server.settings import Settings
 
 log = logging.getLogger("ssp_rehab.robotd")
-WORKER_STALL_S = 0.2  # the worker's state stopped advancing this long: it is hung or gone
+WORKER_STALL_S = 1.0  # the worker's state stopped advancing this long: hung (idle collections take ~0.3 s loaded)
 WORKER_START_TIMEOUT_S = 1800.0  # a cold numba cache on a loaded machine compiles for many minutes
 
 
