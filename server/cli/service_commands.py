@@ -90,7 +90,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("robot")
     def robot_daemon(
-        robot: str = typer.Option("twin-1", "--robot", help="The robot's name, as bookings name it."),
+        robot: str | None = typer.Option(
+            None, "--robot", help="The robot's name, as bookings name it (default: SSP_REHAB_ROBOT or twin-1)."
+        ),
         data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
         backend: str | None = typer.Option(None, "--backend", help="Robot backend: sim (default), kinematic, canopen."),
         robot_file: Path | None = typer.Option(
@@ -110,11 +112,11 @@ def register(app: typer.Typer) -> None:
             raise fail(_validation_message(error), as_json=as_json) from error
         logging.basicConfig(level=logging.INFO, format="%(asctime)s robotd %(levelname)s [%(name)s] %(message)s")
         try:
-            code = run_robot_daemon(settings, robot)
+            code = run_robot_daemon(settings, settings.robot)
         except AlreadyRunning as error:
             raise fail(str(error), as_json=as_json) from error
         emit(
-            {"robot": robot, "exit_code": code},
+            {"robot": settings.robot, "exit_code": code},
             as_json=as_json,
             human=lambda r: console.print(f"robot daemon {r['robot']} ended"),
         )

@@ -25,7 +25,15 @@ from typing import Any
 from server.realtime.shm import ControlBlock, Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
 from server.robotd.daemon import RobotDaemon, refusal_from_dict
-from server.robotd.status import DaemonState, RobotPaths, RobotStatus, StatusBlock
+from server.robotd.status import (
+    COMMAND_STALE_S,
+    DAEMON_STALE_S,
+    DaemonState,
+    RobotPaths,
+    RobotStatus,
+    StatusBlock,
+    prioritise_liveness_thread,
+)
 from server.sessions.service import RunCommand
 
 log = logging.getLogger("ssp_rehab.robotd")
@@ -53,6 +61,8 @@ class DaemonLink:
         self.paths = paths
         self.environment = environment or {}
         self._spawned = spawned  # the daemon this process started, while it may still be starting
+        self._starting_reason = "the robot daemon is starting (loading)"
+        self._linked_since_spawn = False
         self.robot = paths.robot
         self.restart_absent = restart_absent
         self._last_spawn_s = time.monotonic()
@@ -99,12 +109,15 @@ class DaemonLink:
 
     # --- state ---------------------------------------------------------------------------------------
 
-    def status(self) -> RobotStatus:
+    def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
+        """What /health shows; commands accept an older beat (`COMMAND_STALE_S`)."""
         if not self._connected.is_set() or self._status is None:
-            running = self.paths.lock.exists() and self.paths.pid.exists()
-            reason = "the robot daemon is starting" if running else "no robot daemon runs for this robot"
-            return RobotStatus(DaemonState.ABSENT, reason)
-        return self._status.read()
+            spawned = self._spawned
+            # Never "no robot" while the daemon this process started warms up (before its first link).
+            if spawned is not None and not self._linked_since_spawn and spawned.poll() is None:
+                return RobotStatus(DaemonState.STARTING, self._starting_reason, spawned.pid)
+            return RobotStatus(DaemonState.ABSENT, "no robot daemon runs for this robot")
+        return self._status.read(stale_s)
 
     def latest_state(self) -> dict[str, Any]:
         state = self._state
@@ -157,7 +170,7 @@ class DaemonLink:
     def _request(self, request: str, /, *, timeout_s: float = COMMAND_TIMEOUT_S, **arguments: Any) -> Any:
         from server.errors import WorkerUnavailableError
 
-        status = self.status()
+        status = self.status(COMMAND_STALE_S)
         if not status.ready:
             raise WorkerUnavailableError(f"robot {self.robot!r} is {status.state.label}: {status.reason}")
         try:
@@ -200,7 +213,11 @@ class DaemonLink:
             return  # still starting up (it takes the lock only once its imports are done)
         if not daemon_running(self.paths):
             log.warning("the robot daemon of %s is gone: starting it again", self.robot)
+            code = self._spawned.poll() if self._spawned is not None else None
+            ended = f"the robot daemon ended (exit code {code})" if code is not None else "the robot daemon ended"
+            self._starting_reason = f"{ended}: the drives stop on their own heartbeat loss; starting it again"
             self._last_spawn_s = time.monotonic()
+            self._linked_since_spawn = False
             self._spawned = spawn_daemon(self.paths, self.environment)
 
     def _link_once(self) -> None:
@@ -216,6 +233,7 @@ class DaemonLink:
             self._attach(hello["result"])
             self.link_id = hello["result"]["link_id"]
             self._socket = connection
+            self._linked_since_spawn = True
             self._connected.set()
             beating = threading.Thread(target=self._beat, args=(connection,), name="robot-link-beat", daemon=True)
             beating.start()
@@ -240,6 +258,7 @@ class DaemonLink:
                 self._state = Seqlock(TELEMETRY_DTYPE, names["state_name"])
 
     def _beat(self, connection: socket.socket) -> None:
+        prioritise_liveness_thread("the robot link's beat")
         while self._socket is connection and not self._closed.is_set():
             try:
                 with self._send_lock:
@@ -276,7 +295,7 @@ class LocalLink:
     async def estop_confirmed(self, sequence: int | None) -> bool:
         return sequence is not None
 
-    def status(self) -> RobotStatus:
+    def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         run = self.daemon.active_run()
         return RobotStatus(DaemonState.READY, "in-process robot", os.getpid(), *(run or (None, None)))
 

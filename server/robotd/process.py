@@ -35,11 +35,17 @@ from server.realtime.client import WorkerClient
 from server.robotd.daemon import RobotDaemon, refusal_to_dict
 from server.robotd.planner import Planner
 from server.robotd.recovery import recover_open_runs
-from server.robotd.status import STATUS_PERIOD_S, DaemonState, RobotPaths, StatusBlock
+from server.robotd.status import (
+    STATUS_PERIOD_S,
+    DaemonState,
+    RobotPaths,
+    StatusBlock,
+    prioritise_liveness_thread,
+)
 from server.settings import Settings
 
 log = logging.getLogger("ssp_rehab.robotd")
-WORKER_STALL_S = 0.2  # the worker's state stopped advancing this long: it is hung or gone
+WORKER_STALL_S = 1.0  # the worker's state stopped advancing this long: hung (idle collections take ~0.3 s loaded)
 WORKER_START_TIMEOUT_S = 1800.0  # a cold numba cache on a loaded machine compiles for many minutes
 
 
@@ -119,6 +125,7 @@ class RobotDaemonProcess:
         self.status.publish(self.state, reason, os.getpid(), run)
 
     def _beat_forever(self) -> None:
+        prioritise_liveness_thread("the daemon's status beat")
         last_sequence, last_change = -1, time.monotonic()
         while not self._stop.wait(STATUS_PERIOD_S):
             worker = self.worker
@@ -193,6 +200,7 @@ class RobotDaemonProcess:
         raise ValueError(f"cmd = {command!r}: unknown")
 
     def serve_link(self, connection: socket.socket, reader: Any, web_pid: int | None) -> None:
+        prioritise_liveness_thread("a console link")  # its beats decide whether the console is alive
         link_id = uuid.uuid4().hex
         with self._links_lock:
             self.links[link_id] = connection

@@ -4,6 +4,8 @@ record it publishes in shared memory every 20 ms, which web processes read witho
 from __future__ import annotations
 
 import enum
+import logging
+import os
 import re
 import time
 from dataclasses import dataclass
@@ -14,10 +16,24 @@ import numpy as np
 
 from server.realtime.shm import Seqlock
 
+log = logging.getLogger("ssp_rehab.robotd")
 STATUS_PERIOD_S = 0.02
 DAEMON_STALE_S = 0.1  # no status beat (every 20 ms) for this long: dead or hung (issue 12: within 200 ms)
+COMMAND_STALE_S = 1.0  # a command is still sent to a daemon this late with its beat (a busy machine)
 ROBOT_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 REASON_BYTES = 240
+
+
+LIVENESS_FIFO_PRIORITY = 10  # as the old heartbeat thread: below the worker (80) and the relay (60)
+
+
+def prioritise_liveness_thread(what: str) -> None:
+    """SCHED_FIFO for the calling thread: beats must not starve behind busy neighbours on a loaded machine
+    (a starved beat would stop a patient's session for nothing)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(LIVENESS_FIFO_PRIORITY))
+    except (OSError, AttributeError) as error:
+        log.info("%s runs without real-time priority: %s", what, error)
 
 
 class DaemonState(enum.IntEnum):
@@ -127,11 +143,11 @@ class StatusBlock:
         record["reason"] = reason.encode()[:REASON_BYTES]
         self.seqlock.write(record)
 
-    def read(self) -> RobotStatus:
+    def read(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         record = self.seqlock.read()[0]
         age_s = (time.monotonic_ns() - int(record["beat_ns"])) * 1e-9
         pid = int(record["pid"]) or None
-        if age_s > DAEMON_STALE_S:
+        if age_s > stale_s:
             return RobotStatus(
                 DaemonState.ABSENT,
                 f"the robot daemon (pid {pid}) stopped answering {age_s:.2f} s ago: hung or stopped",

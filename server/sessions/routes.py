@@ -45,6 +45,7 @@ from server.exports.dataset import dataset_zip
 from server.jsonable import to_jsonable
 from server.reviews.service import refuse_start_while_unacknowledged
 from server.robotd.link import NO_ROBOT_PROCESS
+from server.robotd.status import COMMAND_STALE_S, DAEMON_STALE_S
 from server.scheduling.service import get_booking
 from server.sessions import logs, service
 from server.sessions.models import SessionRun
@@ -70,17 +71,28 @@ def _audit(*, session: Session, **entry: Any) -> None:
     audit.record(session=session, **entry)
 
 
-def require_robot(request: Request) -> RobotLink:
+def _ready_robot(request: Request, stale_s: float) -> RobotLink:
     robot: RobotLink | None = request.app.state.robot
     if robot is None:
         raise WorkerUnavailableError(NO_ROBOT)
-    robot_status = robot.status()
+    robot_status = robot.status(stale_s)
     if not robot_status.ready:
         raise WorkerUnavailableError(f"robot {robot.robot!r} is {robot_status.state.label}: {robot_status.reason}")
     return robot
 
 
+def require_robot(request: Request) -> RobotLink:
+    """For commands: a daemon a little late with its beat (a busy machine) still gets them."""
+    return _ready_robot(request, COMMAND_STALE_S)
+
+
+def require_live_robot(request: Request) -> RobotLink:
+    """For state reads: as strict as /health, so a dead or hung daemon is never shown as alive."""
+    return _ready_robot(request, DAEMON_STALE_S)
+
+
 RobotDep = Annotated[RobotLink, Depends(require_robot)]
+LiveRobotDep = Annotated[RobotLink, Depends(require_live_robot)]
 
 
 @estop_router.post(
@@ -199,7 +211,7 @@ for _command in ("pause", "resume", "stop"):
 
 
 @router.get("/robot/state", responses={503: {"description": "No robot, or its daemon is starting, faulted or gone"}})
-def robot_state(robot: RobotDep) -> dict[str, Any]:
+def robot_state(robot: LiveRobotDep) -> dict[str, Any]:
     """The worker's latest state: supervisor state, stance pose, slider positions, drive forces, tick stats,
     and the robot daemon's own status."""
     state: dict[str, Any] = to_jsonable(robot.latest_state())
