@@ -9,9 +9,10 @@ weakly ordered ARM memory model needs. It still needs aligned 8-byte stores to b
 so it refuses to start on a CPU not known to give that (`require_supported_cpu`: x86-64 and 64-bit ARM).
 Ring (one writer, one reader): the writer never waits: it writes slot `count % capacity` and only then
 publishes `count + 1`. The reader copies what was published and afterwards drops every record the
-writer may have lapped while it was copying, and counts them as lost. The ring and the control block
-still rely on stores becoming visible in program order (x86-64 TSO); the sequence and count words sit at
-offset 0 of page-aligned blocks.
+writer may have lapped while it was copying, and counts them as lost. The same barrier orders the ring
+(slot before count on the writer's side; count, copy, count again on the reader's) and the control
+block's emergency-stop request (its time before its counter), so neither relies on x86-64's store order;
+the sequence and count words sit at offset 0 of page-aligned blocks.
 
 The creating process (the service side) owns the names and unlinks them; the worker attaches by name
 through /dev/shm so that Python's resource tracker never unlinks blocks it did not create.
@@ -196,6 +197,8 @@ class SharedRing:
         if capacity < 2 or capacity & (capacity - 1):
             raise ValueError(f"capacity = {capacity}: must be a power of two >= 2")
         self.dtype, self.capacity = dtype, capacity
+        require_supported_cpu()
+        memory_barrier()  # compiled before the first publish, not inside a tick
         self.block = SharedBlock(_HEADER_BYTES + dtype.itemsize * capacity, name)
         self._written = np.ndarray((1,), np.uint64, self.block.buffer, 0)  # producer's count, published
         self._records = np.ndarray((capacity,), dtype, self.block.buffer, _HEADER_BYTES)
@@ -217,6 +220,7 @@ class SharedRing:
         return self._records[index : index + 1]
 
     def publish(self) -> None:
+        memory_barrier()  # the slot's contents become visible before the count that publishes them
         self._written[0] += np.uint64(1)
 
     def push(self, record: np.ndarray) -> None:
@@ -227,11 +231,13 @@ class SharedRing:
     def drain(self, max_records: int | None = None) -> np.ndarray:
         """Every record published since the last drain (oldest first), none torn."""
         written = int(self._written[0])
+        memory_barrier()  # read the slots only after the count that published them
         start = max(self.read_count, written - self.capacity)
         if max_records is not None:
             written = min(written, start + max_records)
         indices = np.arange(start, written) & self._mask
         copied = self._records[indices]  # fancy indexing copies
+        memory_barrier()  # finish the copy before asking how far the producer has come since
         # The producer may have lapped us while we copied: the records it could have been overwriting
         # (up to and including the one it is writing now) are not trustworthy, so drop them.
         lapped_to = int(self._written[0]) - self.capacity + 1
@@ -261,6 +267,8 @@ class ControlBlock:
     """Flags that must not queue behind anything: the emergency-stop request and the worker's liveness."""
 
     def __init__(self, name: str | None = None) -> None:
+        require_supported_cpu()
+        memory_barrier()  # compiled (or loaded from the cache) now, never inside the first emergency stop
         self.block = SharedBlock(_HEADER_BYTES + CONTROL_DTYPE.itemsize, name)
         self.fields = np.ndarray((1,), CONTROL_DTYPE, self.block.buffer, _HEADER_BYTES)
 
@@ -269,8 +277,9 @@ class ControlBlock:
         return self.block.name
 
     def request_estop(self, request_ns: int) -> None:
-        # Time first, then the counter: a reader that sees the new count also sees its time (TSO).
+        # Time first, then the counter: a reader that sees the new count also sees its time.
         self.fields["estop_request_ns"] = request_ns
+        memory_barrier()
         self.fields["estop_requests"] += np.uint64(1)
 
     def close(self) -> None:

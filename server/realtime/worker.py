@@ -35,7 +35,7 @@ from server.realtime.prescription import (
     check_plan,
     plan_prescription,
 )
-from server.realtime.shm import ControlBlock, Seqlock, SharedRing
+from server.realtime.shm import ControlBlock, Seqlock, SharedRing, memory_barrier
 from server.realtime.supervisor import SupervisorConfig, TransitionRefused
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, StopReason, SupervisorState, encode_event
 
@@ -218,6 +218,7 @@ class Worker:
             requests = int(self._estop_requests[0])
             if requests != self._estop_seen:
                 self._estop_seen = requests
+                memory_barrier()  # the request's time was stored before its counter: read it after
                 pipeline.emergency_stop(int(self._estop_times[0]))
             if not self.service_gone:
                 self._poll_commands()

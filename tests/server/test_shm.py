@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import multiprocessing
 import time
+from typing import Any
 
 import numba
 import numpy as np
 import pytest
 
 from server.realtime import shm
-from server.realtime.shm import Seqlock, SharedRing
+from server.realtime.shm import ControlBlock, Seqlock, SharedRing
 from server.realtime.telemetry import TELEMETRY_DTYPE
 
 FLOAT_FIELDS = [name for name in TELEMETRY_DTYPE.names or () if TELEMETRY_DTYPE[name].base == np.float64]
@@ -185,3 +186,51 @@ def test_seqlock_publishes_later_changes_of_the_same_record_and_refuses_a_foreig
         assert seqlock.sequence == 4  # nothing half-written
     finally:
         seqlock.close()
+
+
+@pytest.mark.parametrize(
+    "make", [lambda: SharedRing(TELEMETRY_DTYPE, 8), lambda: ControlBlock()], ids=["ring", "control"]
+)
+def test_ring_and_control_block_refuse_an_unsupported_cpu_and_create_nothing(
+    make: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(shm.platform, "machine", lambda: "armv7l")
+    created: list[object] = []
+    monkeypatch.setattr(shm, "SharedBlock", lambda *args: created.append(args))
+    with pytest.raises(shm.UnsupportedPlatformError):
+        make()
+    assert created == []
+
+
+def test_the_ring_fences_its_slot_before_publishing_and_its_copy_from_both_count_reads(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    ring = SharedRing(TELEMETRY_DTYPE, 8)
+    seen: list[int] = []
+    monkeypatch.setattr(shm, "memory_barrier", lambda: seen.append(ring.written))
+    try:
+        record = np.zeros(1, TELEMETRY_DTYPE)
+        _stamp(record, 7)
+        ring.push(record)
+        assert seen == [0] and ring.written == 1  # the fence came after the slot, before the count
+        seen.clear()
+        drained = ring.drain()
+        assert len(seen) == 2 and drained["tick"].tolist() == [7]  # count, fence, copy, fence, count
+    finally:
+        ring.close()
+
+
+def test_the_estop_request_fences_its_time_before_its_counter(monkeypatch: pytest.MonkeyPatch) -> None:
+    control = ControlBlock()
+    seen: list[tuple[int, int]] = []
+    fields = control.fields
+    monkeypatch.setattr(
+        shm,
+        "memory_barrier",
+        lambda: seen.append((int(fields["estop_request_ns"][0]), int(fields["estop_requests"][0]))),
+    )
+    try:
+        control.request_estop(123_456)
+        assert seen == [(123_456, 0)] and int(fields["estop_requests"][0]) == 1
+    finally:
+        control.close()
