@@ -122,6 +122,8 @@ def _error_handlers(app: FastAPI) -> None:
         if reason is None and isinstance(error, InternalError):
             raise error
         detail = reason or f"the database is unavailable: {str(error.orig).splitlines()[0][:200]}"
+        if reason is not None:
+            app.state.database_refusal = reason  # /health says so until a restart finds it writable again
         return JSONResponse({"detail": f"{detail}: nothing was written"}, status_code=503)
 
     @app.exception_handler(IntegrityError)
@@ -174,7 +176,15 @@ def _api_router() -> APIRouter:
             daemon = {"state": "absent", "reason": "this console runs without a robot"}
         else:
             daemon = robot.status().to_dict()
-        return {"status": "ok", "robot_connected": daemon["state"] == "ready", "robot": daemon}
+        # A database that turned read-only after start-up is known from the write it refused (probing it
+        # here would take SQLite's write lock on every health check).
+        refusal: str | None = getattr(request.app.state, "database_refusal", None)
+        return {
+            "status": "ok" if refusal is None else "degraded",
+            "robot_connected": daemon["state"] == "ready",
+            "robot": daemon,
+            "database": {"writable": refusal is None, "reason": refusal},
+        }
 
     for router in (
         auth_public_router,
