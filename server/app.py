@@ -323,8 +323,7 @@ def _security_middleware(app: FastAPI, settings: Settings) -> None:
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=settings.trusted_proxies)
     # Outside Starlette's outermost error middleware, so that even a crash's bare 500 carries the headers.
     build_stack = app.build_middleware_stack
-    viz_port = settings.viz_port if settings.viz_enabled else None
-    app.build_middleware_stack = lambda: SecurityHeadersMiddleware(build_stack(), viz_port=viz_port)  # type: ignore[method-assign]
+    app.build_middleware_stack = lambda: SecurityHeadersMiddleware(build_stack())  # type: ignore[method-assign]
 
 
 def _install_observability(app: FastAPI, settings: Settings) -> None:

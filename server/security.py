@@ -140,42 +140,31 @@ COMMON_HEADERS = {
 }
 _BASE_POLICY = "default-src 'self'; object-src 'none'; base-uri 'self'; form-action 'self'; frame-ancestors 'self'"
 # Swagger UI and ReDoc start from an inline script and inject styles; their pages carry no records.
-DOCUMENTATION_POLICY = (
-    f"{_BASE_POLICY}; script-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net; "
-    "style-src 'self' 'unsafe-inline' https://cdn.jsdelivr.net https://fonts.googleapis.com; "
-    "font-src 'self' data: https://fonts.gstatic.com; "
-    "img-src 'self' data: https://fastapi.tiangolo.com https://cdn.redoc.ly; "
-    "worker-src 'self' blob:; connect-src 'self'"
+DOCUMENTATION_POLICY = (  # their assets are served locally (server/api_docs.py): nothing from elsewhere
+    f"{_BASE_POLICY}; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "font-src 'self' data:; img-src 'self' data:; worker-src 'self' blob:; connect-src 'self'"
 )
 
 
-def application_policy(scope: Scope, viz_port: int | None) -> str:
-    """The web app's policy. The live 3D view is viser's page on its own port of the same host, framed by
-    the session console; when it is served through the console itself, 'self' covers it."""
+def application_policy(scope: Scope) -> str:
+    """The web app's policy. The live 3D view is framed from the console itself (server/viz/proxy.py, which
+    gives viser's page a policy of its own), so 'self' covers it."""
     host = Headers(scope=scope).get("host", "")
-    hostname = urlsplit(f"//{host}").hostname if host else None
-    frames = "'self'"
-    if viz_port is not None and hostname:
-        shown = f"[{hostname}]" if ":" in hostname else hostname
-        frames += f" http://{shown}:{viz_port} https://{shown}:{viz_port}"
     return (
         f"{_BASE_POLICY}; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; font-src 'self'; "
-        f"connect-src 'self' ws://{host} wss://{host}; frame-src {frames}; worker-src 'self' blob:"
+        f"connect-src 'self' ws://{host} wss://{host}; frame-src 'self'; worker-src 'self' blob:"
     )
 
 
 class SecurityHeadersMiddleware:
-    def __init__(self, app: ASGIApp, *, viz_port: int | None) -> None:
+    def __init__(self, app: ASGIApp) -> None:
         self.app = app
-        self.viz_port = viz_port
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        policy = (
-            DOCUMENTATION_POLICY if scope["path"] in DOCUMENTATION_PATHS else application_policy(scope, self.viz_port)
-        )
+        policy = DOCUMENTATION_POLICY if scope["path"] in DOCUMENTATION_PATHS else application_policy(scope)
 
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
