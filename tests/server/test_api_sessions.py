@@ -245,6 +245,10 @@ def test_bulk_export_selects_runs_by_date_and_diagnosis(
     pytest.importorskip("server.exports")
     _, stroke_run = recorded_run(robot_client, seed, fake_worker)
     robot_client.post("/api/v1/estop", headers=seed.headers())  # frees the robot for the next patient
+    acknowledged = robot_client.post(  # the limit stop is attended to before the robot starts again
+        f"/api/v1/runs/{stroke_run['id']}/acknowledge", json={"note": "checked"}, headers=seed.headers()
+    )
+    assert acknowledged.status_code == 200, acknowledged.text
     import datetime as dt
 
     today = dt.datetime.now(dt.UTC).date()

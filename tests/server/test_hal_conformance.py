@@ -165,9 +165,11 @@ def test_emergency_stop_latches_removes_power_and_reset_never_moves(hal: Hardwar
         with pytest.raises(HalError):
             refused()
     assert hal.state is HalState.ESTOP
+    for _ in range(300):  # the drives' own stop ends (the sim's quick-stop ramp carries a loaded slider on)
+        tick(hal, reading)
+    stopped_at = reading.positions_m.copy()
     hal.reset_estop()
     assert hal.state is HalState.CONFIGURED
-    stopped_at = reading.positions_m.copy()
     for _ in range(100):
         tick(hal, reading)
     assert np.all(reading.drive_states == DriveState.SWITCH_ON_DISABLED), states_of(reading)
