@@ -1,11 +1,11 @@
 """Prometheus metrics (prometheus-client): API latency by route, and the robot's tick timing, counters
 and state, read from what the real-time worker already publishes.
 
-The robot side is read through `WorkerTap`, a small adapter around the worker object that the session
-recorder drains: it forwards `drain_telemetry()`, `drain_events()` and `latest_state()` unchanged and
-observes what passes. It needs nothing else from the worker, so it survives changes to how the service
-reaches the worker (in-process client, daemon), as long as those three calls and the TELEMETRY_DTYPE
-fields `tick_compute_us`, `lateness_us`, `deadline_misses` and `limit_hits` (cumulative) stay.
+The robot's metrics live in the robot daemon, the one reader of the worker's streams: `WorkerTap` wraps
+the worker the daemon's recorder drains, forwards `drain_telemetry()`, `drain_events()` and
+`latest_state()` unchanged and observes what passes into `RobotMetrics`. Every web process serves its own
+`ServiceMetrics` followed by the daemon's robot metrics (asked over its socket), so several web
+processes show one robot's figures once, and a web crash loses none of them.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ EVENT_COUNTERS = {"emergency_stop": "emergency_stops", "fault": "faults"}
 
 
 class ServiceMetrics:
-    """Every metric of one service instance, in its own registry (one per app, so that tests stay apart)."""
+    """One web process's metrics, in its own registry (one per app, so that tests stay apart)."""
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
@@ -38,6 +38,20 @@ class ServiceMetrics:
             buckets=REQUEST_BUCKETS_S,
             registry=registry,
         )
+        self.robot_connected = Gauge(
+            "ssp_rehab_robot_connected", "1 while the robot daemon is attached and ready.", registry=registry
+        )
+        self.active_run = Gauge(
+            "ssp_rehab_session_run_active", "1 while a session run is being recorded.", registry=registry
+        )
+
+
+class RobotMetrics:
+    """The robot's metrics, kept by its daemon from everything the worker publishes."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        registry = self.registry
         self.tick_compute_seconds = Histogram(
             "ssp_rehab_robot_tick_compute_seconds",
             "Compute time of one real-time tick.",
@@ -62,7 +76,7 @@ class ServiceMetrics:
         self.faults = Counter("ssp_rehab_robot_faults", "Faults reported by the worker.", registry=registry)
         self.telemetry_lost = Counter(
             "ssp_rehab_robot_telemetry_lost",
-            "Telemetry records lost before the service drained them.",
+            "Telemetry records lost before the robot daemon drained them.",
             registry=registry,
         )
         self.telemetry_records = Counter(
@@ -77,12 +91,6 @@ class ServiceMetrics:
         self.estop_latched = Gauge(
             "ssp_rehab_robot_estop_latched", "1 while an emergency stop is latched.", registry=registry
         )
-        self.robot_connected = Gauge(
-            "ssp_rehab_robot_connected", "1 while a real-time worker is attached.", registry=registry
-        )
-        self.active_run = Gauge(
-            "ssp_rehab_session_run_active", "1 while a session run is being recorded.", registry=registry
-        )
         for state in ROBOT_STATES:
             self.robot_state.labels(state=state)
 
@@ -91,7 +99,7 @@ class WorkerTap:
     """The worker as the session recorder sees it, with every drained record and event observed on the
     way through. Other attributes pass straight to the worker."""
 
-    def __init__(self, worker: Any, metrics: ServiceMetrics) -> None:
+    def __init__(self, worker: Any, metrics: RobotMetrics) -> None:
         self._worker = worker
         self._metrics = metrics
         self._lock = threading.Lock()

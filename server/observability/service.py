@@ -1,14 +1,13 @@
 """Wiring observability into the app: the request middleware (latency histogram, request id, run id,
-one structured log line per request), `GET /metrics`, and the tap on the robot worker."""
+one structured log line per request), and `GET /metrics`: this process's metrics, then the robot
+daemon's (server.observability.metrics)."""
 
 from __future__ import annotations
 
-import contextlib
 import hmac
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator
 from typing import Any
 
 import structlog
@@ -17,7 +16,9 @@ from fastapi.routing import iter_route_contexts
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.observability.metrics import ServiceMetrics, WorkerTap
+from server.observability.metrics import ServiceMetrics
+from server.robotd.status import DaemonState
+from server.sessions.worker import RobotLink
 from server.settings import Settings
 
 # A stdlib logger: with the service's logging set up (server.observability.logs) its lines are JSON with the
@@ -54,8 +55,7 @@ class RequestObservation:
             return
         given = dict(scope["headers"]).get(REQUEST_ID_HEADER, b"").decode("latin-1")[:64]
         request_id = given if given.replace("-", "").isalnum() else uuid.uuid4().hex
-        recorder = getattr(self.fastapi_app.state, "recorder", None)
-        run_id = recorder.active_run_id if recorder is not None else None
+        run_id = _active_run_id(self.fastapi_app)
         structlog.contextvars.bind_contextvars(request_id=request_id, run_id=run_id)
         started = time.perf_counter()
         status_code = 500
@@ -86,6 +86,27 @@ class RequestObservation:
             structlog.contextvars.unbind_contextvars("request_id", "run_id")
 
 
+def _active_run_id(app: FastAPI) -> int | None:
+    """The run the robot daemon records, from its status in shared memory (no request to the daemon)."""
+    robot: RobotLink | None = getattr(app.state, "robot", None)
+    return robot.status().active_run_id if robot is not None else None
+
+
+def _robot_metrics_text(app: FastAPI, metrics: ServiceMetrics) -> str:
+    """The daemon's robot metrics; empty (and robot_connected 0) while no daemon answers."""
+    robot: RobotLink | None = getattr(app.state, "robot", None)
+    robot_status = robot.status() if robot is not None else None
+    metrics.robot_connected.set(1.0 if robot_status is not None and robot_status.ready else 0.0)
+    metrics.active_run.set(1.0 if robot_status is not None and robot_status.active_run_id is not None else 0.0)
+    if robot is None or robot_status is None or robot_status.state is DaemonState.ABSENT:
+        return ""
+    try:
+        return robot.metrics_text()
+    except Exception as error:  # a daemon busy or going away: this process's metrics still answer
+        logger.warning("the robot daemon's metrics are unavailable: %s", error)
+        return ""
+
+
 def _metrics_route(app: FastAPI, settings: Settings, metrics: ServiceMetrics) -> None:
     token = settings.metrics_token.get_secret_value().encode() if settings.metrics_token is not None else None
 
@@ -104,27 +125,13 @@ def _metrics_route(app: FastAPI, settings: Settings, metrics: ServiceMetrics) ->
             )
         if not hmac.compare_digest(given.strip().encode(), token):
             return Response("wrong metrics token\n", status.HTTP_403_FORBIDDEN)
-        recorder = getattr(app.state, "recorder", None)
-        metrics.robot_connected.set(1.0 if getattr(app.state, "worker", None) is not None else 0.0)
-        metrics.active_run.set(1.0 if recorder is not None and recorder.active_run_id is not None else 0.0)
-        return Response(generate_latest(metrics.registry), media_type=CONTENT_TYPE_LATEST)
+        robot_text = _robot_metrics_text(app, metrics)
+        return Response(generate_latest(metrics.registry) + robot_text.encode(), media_type=CONTENT_TYPE_LATEST)
 
 
 def install_observability(app: FastAPI, settings: Settings) -> None:
-    """Metrics, request ids and the worker tap. The tap is put between the session recorder (the one
-    consumer of the worker's streams) and the worker once the app's lifespan has started them."""
+    """Metrics and request ids for this web process, and `GET /metrics`."""
     metrics = ServiceMetrics()
     app.state.metrics = metrics
     app.add_middleware(RequestObservation, metrics=metrics, fastapi_app=app)
     _metrics_route(app, settings, metrics)
-    inner_lifespan = app.router.lifespan_context
-
-    @contextlib.asynccontextmanager
-    async def lifespan_with_tap(app: FastAPI) -> AsyncIterator[Any]:
-        async with inner_lifespan(app) as state:
-            recorder = getattr(app.state, "recorder", None)
-            if recorder is not None and not isinstance(recorder.worker, WorkerTap):
-                recorder.worker = WorkerTap(recorder.worker, metrics)
-            yield state
-
-    app.router.lifespan_context = lifespan_with_tap

@@ -18,14 +18,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+from prometheus_client import generate_latest
 from sqlalchemy.orm import Session
 
 from server.db import Database, write_transaction
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.jsonable import to_jsonable
+from server.observability.metrics import RobotMetrics, WorkerTap
 from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.journal import RunJournal
 from server.robotd.planner import Planner
@@ -86,7 +88,9 @@ class RobotDaemon:
         shutdown_wait_s: float = SHUTDOWN_WAIT_S,
     ) -> None:
         self.robot = robot
-        self.worker = worker
+        self.metrics = RobotMetrics()
+        # Counted where the worker's streams are read; the tap forwards everything else to the worker.
+        self.worker = cast("WorkerControl", WorkerTap(worker, self.metrics))
         self.database = database
         self.journal_dir = journal_dir
         self.planner = planner
@@ -264,6 +268,10 @@ class RobotDaemon:
             retry=True,
         )
         return run_ids
+
+    def metrics_text(self) -> str:
+        """The robot's metrics in Prometheus text format (web processes append them to their own)."""
+        return generate_latest(self.metrics.registry).decode()
 
     def active_run(self) -> tuple[int, int] | None:
         """(run id, session id) of a run in motion (not in its tail)."""

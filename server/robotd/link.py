@@ -159,6 +159,10 @@ class DaemonLink:
         )
         return result
 
+    def metrics_text(self) -> str:
+        text: str = self._request("metrics", timeout_s=2.0)
+        return text
+
     def active_run(self) -> tuple[int, int] | None:
         status = self.status()
         if status.state is DaemonState.ABSENT:
@@ -328,6 +332,9 @@ class LocalLink:
 
     def note_emergency_stop(self, user_id: int | None, authenticated: bool, credential: str) -> list[int]:
         return self.daemon.note_emergency_stop(user_id, authenticated, credential)
+
+    def metrics_text(self) -> str:
+        return self.daemon.metrics_text()
 
     def active_run(self) -> tuple[int, int] | None:
         return self.daemon.active_run()

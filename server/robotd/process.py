@@ -197,6 +197,8 @@ class RobotDaemonProcess:
             )
         if command == "active_run":
             return daemon.active_run()
+        if command == "metrics":
+            return daemon.metrics_text()
         raise ValueError(f"cmd = {command!r}: unknown")
 
     def serve_link(self, connection: socket.socket, reader: Any, web_pid: int | None) -> None:

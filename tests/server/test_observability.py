@@ -99,6 +99,7 @@ def test_robot_counters_and_histograms_move_during_a_session(
     _push_telemetry(fake_worker, 500, deadline_misses=3, limit_hits=1)
     fake_worker.telemetry_lost = 7  # type: ignore[attr-defined]  # the ring's overrun count, as WorkerClient has it
     wait_until(lambda: scrape(client)[("ssp_rehab_robot_tick_lateness_seconds_count", ())] >= 500)
+    assert scrape(client)[("ssp_rehab_session_run_active", ())] == 1
     _push_telemetry(fake_worker, 500, deadline_misses=5, limit_hits=2)
     fake_worker.emit_event("emergency_stop", source="api")
     fake_worker.emit_event("fault", reason="watchdog")
@@ -113,7 +114,7 @@ def test_robot_counters_and_histograms_move_during_a_session(
     assert after[("ssp_rehab_robot_telemetry_lost_total", ())] == 7
     assert after[("ssp_rehab_robot_state", (("state", "running"),))] == 1
     assert after[("ssp_rehab_robot_state", (("state", "idle"),))] == 0
-    assert after[("ssp_rehab_session_run_active", ())] == 1
+    assert after[("ssp_rehab_session_run_active", ())] == 0  # the fault ended the run
     assert after[("ssp_rehab_robot_connected", ())] == 1
 
 
@@ -124,14 +125,16 @@ def test_logs_are_json_lines_with_the_request_id_and_the_run_id(
     saved = (list(root.handlers), root.level)
     try:
         configure_logging("json")
-        client.app.state.recorder = SimpleNamespace(active_run_id=17)  # type: ignore[attr-defined]
+        # A robot daemon recording run 17, as its status in shared memory says.
+        running = SimpleNamespace(active_run_id=17, to_dict=lambda: {"state": "ready", "active_run_id": 17})
+        client.app.state.robot = SimpleNamespace(status=lambda: running)  # type: ignore[attr-defined]
         response = client.get("/api/v1/patients", params={"search": "Greta"}, headers=seed.headers())
         given = client.get("/api/v1/health", headers={"X-Request-ID": "from-the-proxy-1"})
         logging.getLogger("server.somewhere").warning("plain %s logger", "stdlib")
         lines = [json.loads(line) for line in capsys.readouterr().err.splitlines() if line.startswith("{")]
     finally:
         root.handlers, root.level = saved
-        client.app.state.recorder = None  # type: ignore[attr-defined]
+        client.app.state.robot = None  # type: ignore[attr-defined]
     requests = [line for line in lines if line.get("event") == "request"]
     first = next(line for line in requests if line["route"] == "/api/v1/patients")
     assert first["request_id"] == response.headers["x-request-id"] and len(first["request_id"]) == 32
