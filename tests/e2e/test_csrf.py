@@ -9,12 +9,12 @@ import contextlib
 import http.server
 import threading
 from collections.abc import Iterator
-from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
-from tests.e2e.conftest import ADMIN, CHROMIUM_ARGS, free_port
+from tests.e2e.conftest import ADMIN, free_port
 from tests.server.conftest import PATIENT, SEGMENT
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -76,7 +76,7 @@ def attacker_site(target: str) -> Iterator[str]:
 
 
 def test_a_form_posted_from_another_port_does_not_start_a_session(
-    console_service: dict[str, object], chromium_path: Path
+    console_service: dict[str, object], browser: Any
 ) -> None:
     base_url = str(console_service["base_url"])
     with httpx.Client(base_url=base_url, timeout=60) as anonymous:
@@ -86,9 +86,8 @@ def test_a_form_posted_from_another_port_does_not_start_a_session(
     with httpx.Client(base_url=base_url, timeout=120, headers={"Authorization": f"Bearer {token}"}) as api:
         session_id = _booked_session(api)
         start_url = f"{base_url}/api/v1/sessions/{session_id}/start"
-        with playwright_api.sync_playwright() as playwright, attacker_site(start_url) as attacker_url:
-            browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
-            context = browser.new_context()
+        with attacker_site(start_url) as attacker_url:
+            context = browser.new_context()  # the suite's one browser (one Playwright per thread)
             context.add_cookies(
                 [{"name": "ssp_rehab_session", "value": token, "url": base_url, "httpOnly": True, "sameSite": "Strict"}]
             )
@@ -127,6 +126,6 @@ def test_a_form_posted_from_another_port_does_not_start_a_session(
                 assert own[0] == 409 and "no active run" in own[1], own
                 assert violations == []
             finally:
-                browser.close()
+                context.close()
                 if api.get(f"/api/v1/sessions/{session_id}/runs").json():  # the forgery got through
                     api.post(f"/api/v1/sessions/{session_id}/stop")

@@ -19,7 +19,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import CHROMIUM_ARGS, free_port
+from tests.e2e.conftest import free_port
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -88,36 +88,30 @@ def clinic_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Path
 
 
 @contextlib.contextmanager
-def _logged_in(chromium_path: Path, base: str, timezone_id: str) -> Iterator[Any]:
-    """A logged-in page of Debian's chromium with the browser's clock in `timezone_id`."""
-    with playwright_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
-        try:
-            context = browser.new_context(
-                viewport={"width": 1400, "height": 1000}, timezone_id=timezone_id, locale="en-GB"
-            )
-            page = context.new_page()
-            page.set_default_timeout(20_000)
-            page.goto(f"{base}/#/login")
-            page.get_by_label("Username").fill(USER[0])
-            page.get_by_label("Password").fill(USER[1])
-            page.get_by_role("button", name="Log in").click()
-            expect(page.get_by_role("heading", name="Patients")).to_be_visible()
-            yield page
-        finally:
-            browser.close()
+def _logged_in(browser: Any, base: str, timezone_id: str) -> Iterator[Any]:
+    """A logged-in page of the suite's Debian chromium with the browser's clock in `timezone_id`."""
+    context = browser.new_context(viewport={"width": 1400, "height": 1000}, timezone_id=timezone_id, locale="en-GB")
+    try:
+        page = context.new_page()
+        page.set_default_timeout(20_000)
+        page.goto(f"{base}/#/login")
+        page.get_by_label("Username").fill(USER[0])
+        page.get_by_label("Password").fill(USER[1])
+        page.get_by_role("button", name="Log in").click()
+        expect(page.get_by_role("heading", name="Patients")).to_be_visible()
+        yield page
+    finally:
+        context.close()
 
 
 def _heading(page: object) -> object:
     return page.get_by_role("heading", name="Schedule: week of")  # type: ignore[attr-defined]
 
 
-def test_week_navigation_and_booking_in_clinic_local_time(
-    clinic_service: dict[str, object], chromium_path: Path
-) -> None:
+def test_week_navigation_and_booking_in_clinic_local_time(clinic_service: dict[str, object], browser: Any) -> None:
     base = str(clinic_service["base_url"])
     second_patient = clinic_service["patients"][1]  # type: ignore[index]
-    with _logged_in(chromium_path, base, CLINIC_ZONE) as page:
+    with _logged_in(browser, base, CLINIC_ZONE) as page:
         errors: list[str] = []
         page.on("pageerror", lambda error: errors.append(str(error)))
         schedule_requests: list[str] = []
@@ -178,11 +172,11 @@ def test_week_navigation_and_booking_in_clinic_local_time(
 
 
 def test_a_browser_in_another_zone_shows_and_enters_clinic_time(
-    clinic_service: dict[str, object], chromium_path: Path
+    clinic_service: dict[str, object], browser: Any
 ) -> None:
     base = str(clinic_service["base_url"])
     first_patient = clinic_service["patients"][0]  # type: ignore[index]
-    with _logged_in(chromium_path, base, "America/New_York") as page:
+    with _logged_in(browser, base, "America/New_York") as page:
         page.goto(f"{base}/#/schedule?week=2031-04-14&patient={first_patient['id']}")
         expect(_heading(page)).to_have_text("Schedule: week of 14 April 2031")
         form = page.locator("form:has(h2:text('Book a session'))")
