@@ -13,6 +13,7 @@ import hashlib
 import hmac
 import importlib.metadata
 import logging
+import os
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -174,7 +175,8 @@ def _api_router() -> APIRouter:
             daemon = {"state": "absent", "reason": "this console runs without a robot"}
         else:
             daemon = robot.status().to_dict()
-        return {"status": "ok", "robot_connected": daemon["state"] == "ready", "robot": daemon}
+        # web_pid: which of the console's web processes (`serve --workers N`) answered.
+        return {"status": "ok", "robot_connected": daemon["state"] == "ready", "robot": daemon, "web_pid": os.getpid()}
 
     for router in (
         auth_public_router,
@@ -290,6 +292,13 @@ def create_app(
     _install_access_log_redaction()
     install_log_redaction()
     return app
+
+
+def app_from_environment() -> FastAPI:
+    """The app factory each web process of `ssp-rehab serve --workers N` calls (uvicorn needs an import
+    string to start several processes): the settings come from the environment, where `serve` has put
+    its command-line options as SSP_REHAB_* variables."""
+    return create_app(Settings())
 
 
 def _security_middleware(app: FastAPI, settings: Settings) -> None:

@@ -1,0 +1,129 @@
+"""Issue 15 §2: `ssp-rehab serve --workers 2` — two web processes behind one port, one robot daemon, one
+session-control lease, one token store. Real processes and real HTTP; every wait is event-based.
+
+A keep-alive `httpx.Client` stays on the web process that accepted its connection; `/health` names that
+process (`web_pid`), so each request below is sent, and checked, on a known process."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from benchmarks.fault_harness import ADMIN, EVENT_TIMEOUT_S, START_TIMEOUT_S, Console, alive, descendants, wait_for
+
+pytestmark = pytest.mark.slow
+
+WEB_PROCESSES = 2
+
+
+@pytest.fixture
+def console(tmp_path: Path) -> Iterator[Console]:
+    instance = Console(tmp_path / "console", serve_args=("--workers", str(WEB_PROCESSES)))
+    instance.start()
+    try:
+        yield instance
+    finally:
+        instance.stop()
+
+
+def web_pid(client: httpx.Client) -> int:
+    return int(client.get("/health").json()["web_pid"])
+
+
+class Process:
+    """Requests to one web process: a keep-alive connection to it, opened again (until the kernel hands a
+    new connection to that process) when uvicorn closed an idle one."""
+
+    def __init__(self, console: Console, pid: int) -> None:
+        self.console, self.pid = console, pid
+        self.client = self._connect()
+
+    def _connect(self) -> httpx.Client:
+        return httpx.Client(base_url=self.console.url, headers=self.console.headers(), timeout=300.0)
+
+    def _on_this_process(self) -> bool:
+        if web_pid(self.client) == self.pid:
+            return True
+        self.client.close()
+        self.client = self._connect()
+        return False
+
+    def request(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
+        wait_for(self._on_this_process, EVENT_TIMEOUT_S, f"a connection to web process {self.pid}", 0.01)
+        response = self.client.request(method, path, **kwargs)
+        assert web_pid(self.client) == self.pid, "the keep-alive connection moved to another process"
+        return response
+
+    def close(self) -> None:
+        self.client.close()
+
+
+@contextlib.contextmanager
+def each_process(console: Console) -> Iterator[list[Process]]:
+    """Every web process (by pid order), once each has said that the robot is ready."""
+    ready: set[int] = set()
+
+    def both_ready() -> bool:
+        health = httpx.get(f"{console.url}/health", timeout=60.0).json()  # a new connection each time
+        if health["robot_connected"]:
+            ready.add(int(health["web_pid"]))
+        return len(ready) == WEB_PROCESSES
+
+    wait_for(both_ready, START_TIMEOUT_S, "both web processes to answer with the robot ready", 0.05)
+    processes = [Process(console, pid) for pid in sorted(ready)]
+    try:
+        yield processes
+    finally:
+        for process in processes:
+            process.close()
+
+
+def robot_daemons(console: Console) -> list[int]:
+    assert console.process is not None
+    return [
+        pid
+        for pid in descendants(console.process.pid)
+        if alive(pid) and b"\x00robot\x00--robot\x00" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    ]
+
+
+def test_two_web_processes_share_one_daemon_and_only_the_lease_holder_starts_motion(console: Console) -> None:
+    with each_process(console) as (holder, other):
+        # Both processes raced to start the daemon at start-up; the daemon's lock left exactly one.
+        daemons = wait_for(lambda: len(d := robot_daemons(console)) == 1 and d, EVENT_TIMEOUT_S, "one robot daemon")
+        assert daemons == [console.daemon_pid()], (daemons, console.daemon_pid())
+
+        started = holder.request("POST", f"/sessions/{console.book()}/start")
+        assert started.status_code == 200, started.text
+        stopped = holder.request("POST", f"/sessions/{started.json()['scheduled_session_id']}/stop")
+        assert stopped.status_code == 200, stopped.text
+        wait_for(lambda: console.run(started.json()["id"])["state"] == "ended", EVENT_TIMEOUT_S, "the run to end", 0.1)
+        wait_for(
+            lambda: other.request("GET", "/robot/state").json().get("state") in ("stopped", "idle"),
+            EVENT_TIMEOUT_S,
+            "the robot to stand still",
+        )
+        # The robot stands still and is free, but the session control stays with the first process.
+        refused = other.request("POST", f"/sessions/{console.book()}/start")
+        assert refused.status_code == 409, refused.text
+        assert f"another console (process {holder.pid}) holds the session control" in refused.text, refused.text
+        again = holder.request("POST", f"/sessions/{console.book()}/start")
+        assert again.status_code == 200, f"the lease holder could not start again: {again.text}"
+        stopped = holder.request("POST", f"/sessions/{again.json()['scheduled_session_id']}/stop")
+        assert stopped.status_code == 200, stopped.text
+
+
+def test_a_token_revoked_through_one_process_is_refused_by_the_other(console: Console) -> None:
+    with each_process(console) as (first, second):
+        login = first.request("POST", "/auth/login", json={"username": ADMIN[0], "password": ADMIN[1]})
+        assert login.status_code == 200, login.text
+        token = {"Authorization": f"Bearer {login.json()['access_token']}"}
+        assert second.request("GET", "/auth/me", headers=token).status_code == 200
+        assert first.request("POST", "/auth/logout", headers=token).status_code == 204
+        refused = second.request("GET", "/auth/me", headers=token)
+        assert refused.status_code == 401, f"process {second.pid} still accepts the revoked token: {refused.text}"
