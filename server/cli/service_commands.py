@@ -140,6 +140,41 @@ def register(app: typer.Typer) -> None:
             factory=workers > 1,
         )
 
+    @app.command("warm-up")
+    def warm_up(
+        robot_file: Path | None = ROBOT_OPTION,
+        as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
+    ) -> None:
+        """Compile the real-time kernels into numba's cache (set-up; `scripts/console.sh` runs it), so that
+        the robot daemon's first start loads them instead of compiling for minutes."""
+        import time
+
+        from core.robot import default_twin, load_twin
+        from server.cli.output import progress_bar
+        from server.realtime.pipeline import compile_tick_path
+        from server.realtime.supervisor import SupervisorConfig
+
+        try:
+            settings = _settings(robot_file=robot_file)
+            twin = load_twin(settings.robot_file) if settings.robot_file else default_twin()
+        except ValidationError as error:
+            raise fail(_validation_message(error), as_json=as_json) from error
+        except DescriptionError as error:
+            raise fail(str(error), as_json=as_json) from error
+        began = time.perf_counter()
+        # The tick path is the same on every backend (it runs on an ideal HAL), as the worker compiles it.
+        description = "compiling the real-time kernels into numba's cache (minutes on a fresh install)"
+        with progress_bar(description, 1, enabled=not as_json) as advance:
+            compile_tick_path(twin, settings.control_rate_hz, SupervisorConfig())
+            advance(1)
+        emit(
+            {"control_rate_hz": settings.control_rate_hz, "elapsed_s": round(time.perf_counter() - began, 1)},
+            as_json=as_json,
+            human=lambda r: console.print(
+                f"real-time kernels ready in numba's cache ({r['elapsed_s']} s, {r['control_rate_hz']} Hz)"
+            ),
+        )
+
     @app.command("robot")
     def robot_daemon(
         robot: str | None = typer.Option(

@@ -16,8 +16,6 @@ import pytest
 
 from benchmarks.fault_harness import ADMIN, EVENT_TIMEOUT_S, START_TIMEOUT_S, Console, alive, descendants, wait_for
 
-pytestmark = pytest.mark.slow
-
 WEB_PROCESSES = 2
 
 
@@ -92,6 +90,7 @@ def robot_daemons(console: Console) -> list[int]:
     ]
 
 
+@pytest.mark.slow
 def test_two_web_processes_share_one_daemon_and_only_the_lease_holder_starts_motion(console: Console) -> None:
     with each_process(console) as (holder, other):
         # Both processes raced to start the daemon at start-up; the daemon's lock left exactly one.
@@ -118,6 +117,7 @@ def test_two_web_processes_share_one_daemon_and_only_the_lease_holder_starts_mot
         assert stopped.status_code == 200, stopped.text
 
 
+@pytest.mark.slow
 def test_a_token_revoked_through_one_process_is_refused_by_the_other(console: Console) -> None:
     with each_process(console) as (first, second):
         login = first.request("POST", "/auth/login", json={"username": ADMIN[0], "password": ADMIN[1]})
@@ -127,3 +127,29 @@ def test_a_token_revoked_through_one_process_is_refused_by_the_other(console: Co
         assert first.request("POST", "/auth/logout", headers=token).status_code == 204
         refused = second.request("GET", "/auth/me", headers=token)
         assert refused.status_code == 401, f"process {second.pid} still accepts the revoked token: {refused.text}"
+
+
+def test_the_web_processes_get_the_options_and_one_signing_key(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from server.app import app_from_environment
+    from server.cli.service_commands import _prepare_web_processes, _settings
+
+    data_dir = tmp_path / "data"
+    options: dict[str, Any] = {"data_dir": data_dir, "backend": "kinematic", "robot": "twin-7", "start_worker": False}
+    for name in ("DATA_DIR", "BACKEND", "ROBOT", "START_WORKER", "DATABASE_URL", "SECRET_KEY", "ROBOT_FILE"):
+        # setenv first so that monkeypatch restores (or removes) what `_prepare_web_processes` writes.
+        monkeypatch.setenv(f"SSP_REHAB_{name}", "")
+        monkeypatch.delenv(f"SSP_REHAB_{name}")
+    monkeypatch.setenv("SSP_REHAB_VIZ_ENABLED", "false")
+    factory = _prepare_web_processes(_settings(**options), options)
+    assert factory == "server.app:app_from_environment"
+    key = (data_dir / "secret_key").read_bytes()
+    assert key, "the signing key must exist before the processes start"
+    assert (data_dir / "ssp-rehab.sqlite3").exists(), "the schema is upgraded once, before the processes"
+    settings = app_from_environment().state.settings  # what each web process builds
+    assert (settings.data_dir, settings.backend, settings.robot, settings.start_worker) == (
+        data_dir.resolve(),
+        "kinematic",
+        "twin-7",
+        False,
+    )
+    assert settings.resolved_secret_key() == key.strip()
