@@ -7,6 +7,9 @@ process (`web_pid`), so each request below is sent, and checked, on a known proc
 from __future__ import annotations
 
 import contextlib
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -153,3 +156,26 @@ def test_the_web_processes_get_the_options_and_one_signing_key(tmp_path: Path, m
         False,
     )
     assert settings.resolved_secret_key() == key.strip()
+
+
+def test_a_console_whose_daemon_lost_the_start_race_says_starting_not_absent(tmp_path: Path) -> None:
+    """Two web processes start at once: both spawn a daemon, the lock admits one, the other exits
+    "already running". The console whose daemon exited has no link yet while the winner warms up:
+    it says "starting" (the robot's lock is held), never "no robot daemon"."""
+    from server.robotd.link import DaemonLink
+    from server.robotd.process import take_lock
+    from server.robotd.status import DaemonState, RobotPaths
+
+    paths = RobotPaths(tmp_path, "twin-1")
+    lost_the_race = subprocess.Popen([sys.executable, "-c", "raise SystemExit(1)"])
+    lost_the_race.wait(60)
+    link = DaemonLink(paths, spawned=lost_the_race)  # not opened: no link to the winner yet
+    assert link.status().state == DaemonState.ABSENT  # no daemon holds the lock
+    winner_lock = take_lock(paths)  # the winning daemon holds it (another open file: flock is per file)
+    try:
+        status = link.status()
+        assert status.state == DaemonState.STARTING, status
+        assert "another" in status.reason, status
+    finally:
+        os.close(winner_lock)
+    assert link.status().state == DaemonState.ABSENT
