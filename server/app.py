@@ -297,8 +297,13 @@ def create_app(
 def app_from_environment() -> FastAPI:
     """The app factory each web process of `ssp-rehab serve --workers N` calls (uvicorn needs an import
     string to start several processes): the settings come from the environment, where `serve` has put
-    its command-line options as SSP_REHAB_* variables."""
-    return create_app(Settings())
+    its command-line options as SSP_REHAB_* variables. Each process is a fresh interpreter, so it
+    configures its own (structured) logging, as `serve` does for one process."""
+    from server.observability.logs import configure_logging
+
+    settings = Settings()
+    configure_logging(settings.log_format)
+    return create_app(settings)
 
 
 def _security_middleware(app: FastAPI, settings: Settings) -> None:

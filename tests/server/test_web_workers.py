@@ -118,6 +118,9 @@ def test_two_web_processes_share_one_daemon_and_only_the_lease_holder_starts_mot
         assert again.status_code == 200, f"the lease holder could not start again: {again.text}"
         stopped = holder.request("POST", f"/sessions/{again.json()['scheduled_session_id']}/stop")
         assert stopped.status_code == 200, stopped.text
+    # Each web process logs (JSON lines, as one process does), e.g. its own start-up.
+    started_up = [line for line in console.log_text().splitlines() if '"Application startup complete."' in line]
+    assert len(started_up) == WEB_PROCESSES, console.log_text()[-3000:]
 
 
 @pytest.mark.slow
