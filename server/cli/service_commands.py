@@ -84,8 +84,6 @@ def register(app: typer.Typer) -> None:
         workers: int = typer.Option(
             1,
             "--workers",
-            min=1,
-            max=MAX_WEB_WORKERS,
             help="Web processes behind the one port, all attached to the one robot daemon.",
         ),
     ) -> None:
@@ -96,6 +94,8 @@ def register(app: typer.Typer) -> None:
 
         if backend is not None and backend not in BACKENDS:
             raise fail(f"--backend = {backend!r}: must be one of {', '.join(BACKENDS)}")
+        if not 1 <= workers <= MAX_WEB_WORKERS:
+            raise fail(f"--workers = {workers}: must be from 1 to {MAX_WEB_WORKERS} web processes")
         options = {
             "data_dir": data_dir,
             "backend": backend,

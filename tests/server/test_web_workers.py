@@ -182,3 +182,14 @@ def test_a_console_whose_daemon_lost_the_start_race_says_starting_not_absent(tmp
     finally:
         os.close(winner_lock)
     assert link.status().state == DaemonState.ABSENT
+
+
+@pytest.mark.parametrize("workers", ["0", "17"])
+def test_a_number_of_web_processes_out_of_range_is_refused_naming_it(workers: str) -> None:
+    from typer.testing import CliRunner
+
+    from server.cli.main import app
+
+    result = CliRunner().invoke(app, ["serve", "--workers", workers, "--no-robot"])
+    assert result.exit_code != 0
+    assert f"--workers = {workers}: must be from 1 to 16" in result.output, result.output
