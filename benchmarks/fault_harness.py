@@ -87,6 +87,7 @@ class Console:
     robot: str = "twin-1"
     port: int = field(default_factory=free_port)
     extra_env: dict[str, str] = field(default_factory=dict)
+    serve_args: tuple[str, ...] = ()  # further `serve` options, e.g. ("--workers", "2")
     process: subprocess.Popen[bytes] | None = None
     token: str | None = None
     log_path: Path | None = None
@@ -130,7 +131,7 @@ class Console:
         self.log_path = self.data_dir / f"serve-{self.port}-{time.time_ns()}.log"
         with self.log_path.open("wb") as log:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "server.cli.main", "serve", "--port", str(self.port)],
+                [sys.executable, "-m", "server.cli.main", "serve", "--port", str(self.port), *self.serve_args],
                 cwd=REPO_ROOT,
                 env=self.env(),
                 stdout=log,

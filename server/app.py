@@ -13,6 +13,7 @@ import hashlib
 import hmac
 import importlib.metadata
 import logging
+import os
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -184,6 +185,7 @@ def _api_router() -> APIRouter:
             "robot_connected": daemon["state"] == "ready",
             "robot": daemon,
             "database": {"writable": refusal is None, "reason": refusal},
+            "web_pid": os.getpid(),  # which of the console's web processes (`serve --workers N`) answered
         }
 
     for router in (
@@ -300,6 +302,18 @@ def create_app(
     _install_access_log_redaction()
     install_log_redaction()
     return app
+
+
+def app_from_environment() -> FastAPI:
+    """The app factory each web process of `ssp-rehab serve --workers N` calls (uvicorn needs an import
+    string to start several processes): the settings come from the environment, where `serve` has put
+    its command-line options as SSP_REHAB_* variables. Each process is a fresh interpreter, so it
+    configures its own (structured) logging, as `serve` does for one process."""
+    from server.observability.logs import configure_logging
+
+    settings = Settings()
+    configure_logging(settings.log_format)
+    return create_app(settings)
 
 
 def _security_middleware(app: FastAPI, settings: Settings) -> None:

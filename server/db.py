@@ -281,22 +281,18 @@ def get_session(request: Request) -> Iterator[Session]:
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
-MODEL_MODULES = (
-    "server.users.models",
-    "server.auth.models",
-    "server.patients.models",
-    "server.prescriptions.models",
-    "server.scheduling.models",
-    "server.sessions.models",
-    "server.audit.models",
-    "server.reviews.models",
-)
-
-
 def load_models() -> MetaData:
-    """Import every domain's models so that `Base.metadata` is complete (Alembic, schema checks)."""
-    import importlib
+    """Import every domain's models so that `Base.metadata` is complete (Alembic, schema checks).
 
-    for module_name in MODEL_MODULES:
-        importlib.import_module(module_name)
+    Plain imports, inside the function because each models module imports `Base` from here (a cycle at
+    module level); an ImportError propagates instead of leaving a table silently missing."""
+    import server.audit.models
+    import server.auth.models
+    import server.patients.models
+    import server.prescriptions.models
+    import server.reviews.models
+    import server.scheduling.models
+    import server.sessions.models
+    import server.users.models  # noqa: F401  (imported for their tables)
+
     return Base.metadata

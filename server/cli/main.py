@@ -2,9 +2,23 @@
 
 from __future__ import annotations
 
-import importlib
-
 import typer
+
+# Plain imports: a module that cannot be imported (a broken real-time stack, say) fails the command line
+# at once with its traceback instead of leaving its commands, or the robot, quietly missing.
+from server.cli import (
+    bench_commands,
+    cueing_commands,
+    drives_commands,
+    dynamics_commands,
+    falls_commands,
+    kinematics_commands,
+    layout_commands,
+    realtime_commands,
+    service_commands,
+    washout_commands,
+    workspace_commands,
+)
 
 app = typer.Typer(
     name="ssp-rehab",
@@ -14,23 +28,23 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-# Each module exposes `register(app: typer.Typer) -> None`.
+# Each module exposes `register(app: typer.Typer) -> None`; this order is the order of `--help`.
 COMMAND_MODULES = (
-    "server.cli.kinematics_commands",
-    "server.cli.workspace_commands",
-    "server.cli.layout_commands",
-    "server.cli.bench_commands",
-    "server.cli.realtime_commands",
-    "server.cli.dynamics_commands",
-    "server.cli.drives_commands",
-    "server.cli.service_commands",
-    "server.cli.falls_commands",
-    "server.cli.washout_commands",
-    "server.cli.cueing_commands",
+    kinematics_commands,
+    workspace_commands,
+    layout_commands,
+    bench_commands,
+    realtime_commands,
+    dynamics_commands,
+    drives_commands,
+    service_commands,
+    falls_commands,
+    washout_commands,
+    cueing_commands,
 )
 
-for _module_name in COMMAND_MODULES:
-    importlib.import_module(_module_name).register(app)
+for _module in COMMAND_MODULES:
+    _module.register(app)
 
 
 def main() -> None:

@@ -18,6 +18,39 @@ ROLES = ("admin", "therapist")
 DATA_DIR_HELP = "Holds the SQLite database and the token key (default ./data, or SSP_REHAB_DATA_DIR)."
 
 
+MAX_WEB_WORKERS = 16
+
+
+def _prepare_web_processes(settings: Any, options: dict[str, Any]) -> str:
+    """What `serve --workers N` (N > 1) does once, before the web processes start: it puts the given
+    options into the environment the processes inherit (their app factory reads Settings from it), and
+    does the one-time set-up they would otherwise race on: the schema upgrade and the token-signing key
+    (two processes generating it at once would sign with different keys). Returns the factory's import
+    string. The robot daemon is not started here: each process attaches, and its lock admits one daemon."""
+    import os
+
+    from core.robot import load_twin
+    from server.db import create_database_engine, upgrade_database
+
+    for name, value in options.items():
+        if value is None:
+            continue
+        if isinstance(value, Path):
+            value = value.resolve()
+        elif isinstance(value, bool):
+            value = "true" if value else "false"
+        os.environ[f"SSP_REHAB_{name.upper()}"] = str(value)
+    if settings.robot_file:
+        load_twin(settings.robot_file)  # a bad description fails here, once, not in every process
+    settings.resolved_secret_key()
+    engine = create_database_engine(settings.resolved_database_url())
+    try:
+        upgrade_database(engine)
+    finally:
+        engine.dispose()
+    return "server.app:app_from_environment"
+
+
 def _settings(**overrides: Any) -> Any:
     """Settings from the environment, with the command-line options that were given taking precedence."""
     from server.settings import Settings
@@ -48,6 +81,11 @@ def register(app: typer.Typer) -> None:
         can_simulate: int | None = typer.Option(
             None, "--can-simulate", help="Simulated CiA 402 drives on that bus (canopen, commissioning)."
         ),
+        workers: int = typer.Option(
+            1,
+            "--workers",
+            help="Web processes behind the one port, all attached to the one robot daemon.",
+        ),
     ) -> None:
         """Run the therapist console: REST API, telemetry WebSocket, web app at / and OpenAPI at /docs."""
         import uvicorn
@@ -56,18 +94,23 @@ def register(app: typer.Typer) -> None:
 
         if backend is not None and backend not in BACKENDS:
             raise fail(f"--backend = {backend!r}: must be one of {', '.join(BACKENDS)}")
+        if not 1 <= workers <= MAX_WEB_WORKERS:
+            raise fail(f"--workers = {workers}: must be from 1 to {MAX_WEB_WORKERS} web processes")
+        options = {
+            "data_dir": data_dir,
+            "backend": backend,
+            "robot": robot_name,
+            "robot_file": robot_file,
+            "start_worker": False if no_robot else None,
+            "can_interface": can_interface,
+            "can_channel": can_channel,
+            "can_simulated_drives": can_simulate,
+        }
+        application: Any  # the app, or the import string of its factory
         try:
-            settings = _settings(
-                data_dir=data_dir,
-                backend=backend,
-                robot=robot_name,
-                robot_file=robot_file,
-                start_worker=False if no_robot else None,
-                can_interface=can_interface,
-                can_channel=can_channel,
-                can_simulated_drives=can_simulate,
-            )
-            application = create_app(settings)
+            settings = _settings(**options)
+            # One process runs the app object; several each build it from the environment (a factory).
+            application = create_app(settings) if workers == 1 else _prepare_web_processes(settings, options)
         except ValidationError as error:
             raise fail(_validation_message(error)) from error
         except DescriptionError as error:
@@ -81,12 +124,56 @@ def register(app: typer.Typer) -> None:
             )
         console.print(
             f"ssp-rehab console on http://{host}:{port}/  (API docs: /docs)\n"
-            f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}"
+            f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}   web processes: {workers}"
         )
         # X-Forwarded-For is believed only from SSP_REHAB_TRUSTED_PROXIES, by the app itself (server.security);
         # uvicorn's own default would trust it from loopback. log_config=None keeps the structured (JSON)
         # logging configured above for uvicorn's loggers too.
-        uvicorn.run(application, host=host, port=port, log_level="info", proxy_headers=False, log_config=None)
+        uvicorn.run(
+            application,
+            host=host,
+            port=port,
+            log_level="info",
+            proxy_headers=False,
+            log_config=None,
+            workers=workers,
+            factory=workers > 1,
+        )
+
+    @app.command("warm-up")
+    def warm_up(
+        robot_file: Path | None = ROBOT_OPTION,
+        as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
+    ) -> None:
+        """Compile the real-time kernels into numba's cache (set-up; `scripts/console.sh` runs it), so that
+        the robot daemon's first start loads them instead of compiling for minutes."""
+        import time
+
+        from core.robot import default_twin, load_twin
+        from server.cli.output import progress_bar
+        from server.realtime.pipeline import compile_tick_path
+        from server.realtime.supervisor import SupervisorConfig
+
+        try:
+            settings = _settings(robot_file=robot_file)
+            twin = load_twin(settings.robot_file) if settings.robot_file else default_twin()
+        except ValidationError as error:
+            raise fail(_validation_message(error), as_json=as_json) from error
+        except DescriptionError as error:
+            raise fail(str(error), as_json=as_json) from error
+        began = time.perf_counter()
+        # The tick path is the same on every backend (it runs on an ideal HAL), as the worker compiles it.
+        description = "compiling the real-time kernels into numba's cache (minutes on a fresh install)"
+        with progress_bar(description, 1, enabled=not as_json) as advance:
+            compile_tick_path(twin, settings.control_rate_hz, SupervisorConfig())
+            advance(1)
+        emit(
+            {"control_rate_hz": settings.control_rate_hz, "elapsed_s": round(time.perf_counter() - began, 1)},
+            as_json=as_json,
+            human=lambda r: console.print(
+                f"real-time kernels ready in numba's cache ({r['elapsed_s']} s, {r['control_rate_hz']} Hz)"
+            ),
+        )
 
     @app.command("robot")
     def robot_daemon(

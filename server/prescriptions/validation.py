@@ -4,26 +4,13 @@ per-prescription limits that may only tighten the robot's own `MotionLimits`. Re
 
 from __future__ import annotations
 
-import importlib
-import logging
 import math
 from dataclasses import asdict
-from types import ModuleType
 from typing import Any
 
+from core import cues, washout
 from core.robot import TwinRobot
 from server.errors import InvalidFieldError
-
-logger = logging.getLogger(__name__)
-
-
-def _core_module(name: str) -> ModuleType | None:
-    """A core module written by another part of the project; None (with a warning) until it exists."""
-    try:
-        return importlib.import_module(name)
-    except ImportError:
-        logger.warning("%s is not available: prescriptions are stored without that check", name)
-        return None
 
 
 def robot_limits(twin: TwinRobot) -> dict[str, float]:
@@ -60,24 +47,23 @@ def _validated_cue(field: str, cue: dict[str, Any]) -> dict[str, Any]:
     text = cue.get("csv") if isinstance(cue, dict) else None
     if isinstance(text, str) and len(text) > CSV_CUE_MAX_BYTES:
         raise InvalidFieldError(f"{field}.csv", f"{len(text)} characters", f"must be at most {CSV_CUE_MAX_BYTES} bytes")
-    cues = _core_module("core.cues")
-    if cues is not None:
-        try:
-            cues.validate_cue_spec(cue)
-        except Exception as error:  # any refusal by the core validator is bad input here
-            raise _refusal(field, cue, error) from error
+    try:
+        cues.validate_cue_spec(cue)
+    except Exception as error:  # any refusal by the core validator is bad input here
+        raise _refusal(field, cue, error) from error
     return cue
 
 
-def _validated_washout(field: str, washout: dict[str, Any] | None) -> dict[str, Any] | None:
-    module = _core_module("core.washout")
-    if module is None:
-        return washout
+def _validated_washout(field: str, parameter_set: dict[str, Any] | None) -> dict[str, Any]:
     try:
         # Without an explicit set, the parameter set that reproduces paper Section 5 is used.
-        parameters = module.paper_tilt_parameters() if washout is None else module.WashoutParameters.from_dict(washout)
+        parameters = (
+            washout.paper_tilt_parameters()
+            if parameter_set is None
+            else washout.WashoutParameters.from_dict(parameter_set)
+        )
     except Exception as error:
-        raise _refusal(field, washout, error) from error
+        raise _refusal(field, parameter_set, error) from error
     normalised: dict[str, Any] = parameters.to_dict()
     return normalised
 

@@ -45,6 +45,7 @@ ESTOP_CONFIRM_TIMEOUT_S = 0.25  # the worker checks the flag every tick (1 ms); 
 COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may take minutes
 MAX_EVENTS_KEPT = 256
 RESPAWN_PERIOD_S = 5.0
+ANOTHER_CONSOLES_DAEMON = "the robot daemon is starting (started by another web process of this robot)"
 
 
 class DaemonLink:
@@ -116,6 +117,13 @@ class DaemonLink:
             # Never "no robot" while the daemon this process started warms up (before its first link).
             if spawned is not None and not self._linked_since_spawn and spawned.poll() is None:
                 return RobotStatus(DaemonState.STARTING, self._starting_reason, spawned.pid)
+            if not self._linked_since_spawn:
+                # Not linked yet, but a daemon holds the robot's lock: another console's (several web
+                # processes starting at once each spawn one; the lock admits one), still warming up.
+                from server.robotd.process import daemon_running
+
+                if daemon_running(self.paths):
+                    return RobotStatus(DaemonState.STARTING, ANOTHER_CONSOLES_DAEMON, _pid_in(self.paths))
             return RobotStatus(DaemonState.ABSENT, "no robot daemon runs for this robot")
         return self._status.read(stale_s)
 
@@ -341,6 +349,13 @@ class LocalLink:
 
     def close(self) -> None:
         self.daemon.shutdown()
+
+
+def _pid_in(paths: RobotPaths) -> int | None:
+    """The daemon's pid from its pid file (None while it has not written it yet)."""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        return int(paths.pid.read_text().split()[0])
+    return None
 
 
 def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes]:

@@ -4,6 +4,7 @@ checks, every route protected, no patient data in logs."""
 from __future__ import annotations
 
 import logging
+import os
 
 import pytest
 from fastapi.routing import iter_route_contexts
@@ -38,6 +39,7 @@ def test_health_is_public_and_reports_no_robot(client: TestClient) -> None:
         "status": "ok",
         "robot_connected": False,
         "robot": {"state": "absent", "reason": "this console runs without a robot"},
+        "web_pid": os.getpid(),  # the process that answered (here the test's own, in-process app)
     }
 
 
