@@ -36,22 +36,30 @@ router = APIRouter(tags=["3d view"])
 NO_VIEW = "the 3D view is not running (turned off with SSP_REHAB_VIZ_ENABLED=false, or its port was taken)"
 
 
-def _running_view(app: Any) -> LiveView | None:
+def _view_port(app: Any) -> int | None:
+    """viser's loopback port: this process's view, else (`serve --workers N`) the configured port, where
+    another web process of this console runs the one view; None when the view is turned off."""
     view: LiveView | None = getattr(app.state, "viz", None)
-    return view if view is not None and view.server is not None else None
+    if view is not None and view.server is not None:
+        return view.port
+    settings = app.state.settings
+    return int(settings.viz_port) if settings.viz_enabled else None
 
 
 @router.get(VIEW_PATH + "/", include_in_schema=True, dependencies=[Depends(current_user)])
 @router.get(VIEW_PATH + "/{path:path}", include_in_schema=False, dependencies=[Depends(current_user)])
 async def view_page(request: Request, path: str = "") -> Response:
     """viser's page, relayed from its loopback port to a logged-in user."""
-    view = _running_view(request.app)
-    if view is None:
+    port = _view_port(request.app)
+    if port is None:
         raise WorkerUnavailableError(NO_VIEW)
-    async with httpx.AsyncClient(timeout=10.0) as client:
-        upstream = await client.get(
-            f"http://127.0.0.1:{view.port}/{path}", params=request.query_params, headers={"Accept-Encoding": "identity"}
-        )
+    try:
+        async with httpx.AsyncClient(timeout=10.0) as client:
+            upstream = await client.get(
+                f"http://127.0.0.1:{port}/{path}", params=request.query_params, headers={"Accept-Encoding": "identity"}
+            )
+    except httpx.HTTPError as error:
+        raise WorkerUnavailableError(NO_VIEW) from error
     return Response(
         upstream.content,
         status_code=upstream.status_code,
@@ -74,16 +82,16 @@ def _refusal(database: Database, websocket: WebSocket) -> str | None:
 async def view_socket(websocket: WebSocket) -> None:
     """viser's WebSocket, relayed both ways once the user is known to be logged in."""
     refusal = await run_in_threadpool(_refusal, websocket.app.state.database, websocket)
-    view = _running_view(websocket.app)
-    if refusal is None and view is None:
+    port = _view_port(websocket.app)
+    if refusal is None and port is None:
         refusal = NO_VIEW
-    if refusal is not None or view is None:
+    if refusal is not None or port is None:
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=refusal)
         return
     offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
     try:
         upstream = await upstream_connect(
-            f"ws://127.0.0.1:{view.port}",
+            f"ws://127.0.0.1:{port}",
             subprotocols=offered,  # viser checks its client's version in the subprotocol
             max_size=MAX_MESSAGE_BYTES,
             compression=None,
