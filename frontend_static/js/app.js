@@ -88,10 +88,32 @@ async function pollRobot() {
   try {
     showRobot(await get("/robot/state"));
   } catch (error) {
-    robotStatus.className = "robot-status bad";
-    robotStatus.textContent = error.status === 503 ? "Robot: OFFLINE" : "Robot: unknown";
-    if (error.status === 503) banner("error", errorText(error), { key: "robot", sticky: true });
+    if (error.status !== 503) {
+      robotStatus.className = "robot-status bad";
+      robotStatus.textContent = "Robot: unknown";
+      return;
+    }
+    // Not ready: the public health check says whether the robot daemon is still starting (with its step and
+    // the seconds so far) or has failed (with the reason), never a bare "offline" for a robot warming up.
+    const daemon = await get("/health").then((health) => health.robot).catch(() => null);
+    showRobotDaemon(daemon, errorText(error));
   }
+}
+function showRobotDaemon(daemon, fallback) {
+  clearBanner("robot-alert");
+  if (daemon && daemon.state === "starting") {
+    robotStatus.className = "robot-status warn";
+    robotStatus.textContent = "Robot: STARTING";
+    banner("warning", `The robot is starting: ${daemon.reason}. The console attaches by itself when it is ready.`,
+      { key: "robot", sticky: true });
+    return;
+  }
+  robotStatus.className = "robot-status bad";
+  robotStatus.textContent = daemon && daemon.state === "fault" ? "Robot: FAULT" : "Robot: OFFLINE";
+  const why = daemon ? `The robot did not start or stopped working: ${daemon.reason}.` : fallback;
+  const alert = banner("error", why, { key: "robot", sticky: true });
+  // The console re-attaches (and restarts a robot process that is gone) by itself; Retry checks again now.
+  alert.querySelector("span").append(" ", h("button.retry", { type: "button", onclick: () => pollRobot() }, "Retry"));
 }
 window.addEventListener("ssp:robot-state", (event) => { if (user) showRobot(event.detail); });
 setInterval(pollRobot, 2000);

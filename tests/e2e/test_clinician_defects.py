@@ -105,6 +105,32 @@ def test_watchdog_stop_shows_as_a_fault_with_reason_and_next_step(console: Any) 
     expect(alert).to_have_count(0)
 
 
+def test_a_robot_warming_up_shows_as_starting_and_a_failed_one_offers_a_retry(console: Any) -> None:
+    """Issue 15 §2: while the robot daemon warms up the console says "starting" with its progress, never
+    "offline"; a daemon that failed shows its reason and a Retry."""
+    session = console()
+    page = session.login()
+    health = {"status": "ok", "robot_connected": False}
+    not_ready = {"detail": "robot 'twin-1' is not ready"}
+    page.route("**/api/v1/robot/state", lambda route: route.fulfill(status=503, json=not_ready))
+    starting = {**health, "robot": {"state": "starting", "reason": "compiling the real-time kernels (12 s so far)"}}
+    page.route("**/api/v1/health", lambda route: route.fulfill(json=starting))
+    status = page.locator("#robot-status")
+    expect(status).to_have_text("Robot: STARTING", timeout=10_000)
+    expect(page.locator(".banner.warning")).to_contain_text("compiling the real-time kernels (12 s so far)")
+    expect(page.get_by_text("Robot: OFFLINE")).to_have_count(0)
+    page.unroute("**/api/v1/health")
+    failed = {**health, "robot": {"state": "fault", "reason": "the real-time worker exited (exit code 1)"}}
+    page.route("**/api/v1/health", lambda route: route.fulfill(json=failed))
+    expect(status).to_have_text("Robot: FAULT", timeout=10_000)
+    alert = page.locator(".banner.error").filter(has_text="exit code 1")
+    expect(alert.get_by_role("button", name="Retry")).to_be_visible()
+    page.unroute("**/api/v1/health")
+    page.unroute("**/api/v1/robot/state")
+    alert.get_by_role("button", name="Retry").click()  # checks again at once: the real robot is there
+    expect(status).not_to_have_text(re.compile("FAULT|STARTING"), timeout=10_000)
+
+
 def test_restart_after_a_fall_needs_an_acknowledgement(console: Any, clinic: dict[str, Any]) -> None:
     session = console()
     page = session.login()
