@@ -78,6 +78,31 @@ def alive(pid: int) -> bool:
     return state not in ("Z", "X")
 
 
+def daemon_pid(data_dir: Path, robot: str = "twin-1") -> int | None:
+    """The pid of the live robot daemon of `robot` in `data_dir` (None where there is none)."""
+    path = data_dir / "robots" / f"{robot}.pid"
+    with contextlib.suppress(OSError, ValueError):
+        pid = int(path.read_text().split()[0])
+        return pid if alive(pid) else None
+    return None
+
+
+def stop_robot_daemon(data_dir: Path, robot: str = "twin-1") -> None:
+    """`serve` leaves its robot daemon running (one long-lived process per robot, by design), so whoever
+    started a console in a test or a benchmark stops the daemon too: SIGTERM, then SIGKILL after 60 s."""
+    pid = daemon_pid(data_dir, robot)
+    if pid is None:
+        return
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGCONT)
+        os.kill(pid, signal.SIGTERM)
+    with contextlib.suppress(AssertionError):
+        wait_for(lambda: not alive(pid), 60.0, "the daemon to exit", 0.1)
+    if alive(pid):
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+
+
 @dataclass
 class Console:
     """One console installation (a data directory) and its running `serve` process, if any."""
@@ -188,24 +213,10 @@ class Console:
 
     def daemon_pid(self) -> int | None:
         """The robot daemon's pid from its pid file (None where there is no daemon)."""
-        path = self.data_dir / "robots" / f"{self.robot}.pid"
-        with contextlib.suppress(OSError, ValueError):
-            pid = int(path.read_text().split()[0])
-            return pid if alive(pid) else None
-        return None
+        return daemon_pid(self.data_dir, self.robot)
 
     def stop_daemon(self) -> None:
-        pid = self.daemon_pid()
-        if pid is None:
-            return
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGCONT)
-            os.kill(pid, signal.SIGTERM)
-        with contextlib.suppress(AssertionError):
-            wait_for(lambda: not alive(pid), 60.0, "the daemon to exit", 0.1)
-        if alive(pid):
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(pid, signal.SIGKILL)
+        stop_robot_daemon(self.data_dir, self.robot)
 
     # --- HTTP ---------------------------------------------------------------------------------------
 

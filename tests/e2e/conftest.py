@@ -17,6 +17,8 @@ from typing import Any
 import httpx
 import pytest
 
+from benchmarks.fault_harness import stop_robot_daemon
+
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
     "--no-sandbox",
@@ -84,8 +86,9 @@ def console_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Pat
                     f"ssp-rehab serve exited ({process.returncode}): {(data_dir / 'serve.log').read_text()[-3000:]}"
                 )
             try:
-                if httpx.get(f"{base_url}/api/v1/health", timeout=2.0).status_code == 200:
-                    break
+                health = httpx.get(f"{base_url}/api/v1/health", timeout=2.0)
+                if health.status_code == 200 and health.json()["robot_connected"]:
+                    break  # the robot daemon is ready too: every test starts from a ready robot
             except httpx.HTTPError:
                 pass
             if time.monotonic() > deadline:
@@ -105,6 +108,7 @@ def console_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Pat
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait(10)
+        stop_robot_daemon(data_dir)  # serve leaves its daemon running, by design
         log.close()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         (ARTIFACTS / "serve.log").write_text((data_dir / "serve.log").read_text())

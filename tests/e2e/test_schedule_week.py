@@ -19,6 +19,7 @@ from typing import Any
 import httpx
 import pytest
 
+from benchmarks.fault_harness import stop_robot_daemon
 from tests.e2e.conftest import free_port
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -84,6 +85,7 @@ def clinic_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Path
     finally:
         process.terminate()
         process.wait(30)
+        stop_robot_daemon(data_dir)  # serve leaves its daemon running, by design
         log.close()
 
 
