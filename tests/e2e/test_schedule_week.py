@@ -284,3 +284,24 @@ def test_drag_a_booking_to_another_day_and_time_and_onto_a_conflict(
         expect(tuesday.get_by_role("button", name="11:00–11:30")).not_to_have_attribute("draggable", "true")
         expect(thursday.get_by_role("button", name="14:30–15:00")).to_have_attribute("draggable", "true")
         assert errors == []
+
+
+def test_a_move_into_the_spring_gap_is_refused_next_to_the_booking(
+    clinic_service: dict[str, object], browser: Any
+) -> None:
+    """Moved a day later from Saturday 02:30 into Sunday 30 March 2031, 02:30 (Europe/Berlin's spring gap):
+    the 422 is shown next to the booking in words, and the booking keeps its time."""
+    base = str(clinic_service["base_url"])
+    patients: list[dict[str, Any]] = clinic_service["patients"]  # type: ignore[assignment]
+    booking = _book(clinic_service, patients[0], "2031-03-29T02:30")
+    with _logged_in(browser, base, CLINIC_ZONE) as page:
+        page.goto(f"{base}/#/schedule?week=2031-03-24")
+        expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
+        saturday = page.get_by_role("region", name="Saturday, 29 March 2031")
+        saturday.get_by_role("button", name="02:30–03:00").focus()
+        page.keyboard.press("Alt+ArrowRight")
+        refusal = saturday.get_by_role("alert")
+        expect(refusal).to_contain_text("Could not move to Sun 30 Mar 02:30")
+        expect(refusal).to_contain_text("does not exist in Europe/Berlin")
+        expect(page.get_by_role("region", name="Sunday, 30 March 2031").locator(".booking")).to_have_count(0)
+    assert _session(clinic_service, booking["id"])["start_local"] == "2031-03-29T02:30:00+01:00"
