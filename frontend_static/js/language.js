@@ -184,6 +184,8 @@ const CONFLICT_PATTERNS = [
   [/(start|resume): not accepted in state (estop|fault|stopped)/i, "The robot is stopped after a fault or emergency stop: Reset the robot first."],
   [/not accepted in state (\w+)/i, (m) => `Not possible while the robot is ${words(m[1])}.`],
   [/identifier is already used/i, "This record number is already used by another patient: check it, or open that patient."],
+  [/(?:occurrence (\d+) of (\d+): )?(robot|patient) already booked from (.+?) \(session (\d+)\); requested (.+?) \(([\w/+-]+) time\)/i,
+    (m) => `${m[1] ? `Occurrence ${m[1]} of ${m[2]}: the` : "The"} ${m[3]} is already booked from ${m[4]} (session ${m[5]}); the requested time was ${m[6]} (${m[7]} time).`],
   [/already acknowledged/i, "This stop has already been acknowledged."],
   [/ended with an? ([\w ]+) that is not acknowledged/i, (m) => `The robot's last run ended with a ${m[1]}: acknowledge it in the session console before a new run.`],
 ];

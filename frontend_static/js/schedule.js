@@ -6,7 +6,7 @@
 // Weeks are calendar dates (YYYY-MM-DD), computed in UTC date arithmetic so that no browser zone or DST
 // change can move them; the service answers the previous and next week with each week.
 import { get, patch, post, query, request } from "./api.js";
-import { banner, clear, field, h, showError, showFieldErrors } from "./ui.js";
+import { banner, clear, errorText, field, h, showError, showFieldErrors } from "./ui.js";
 
 const go = (hash) => { location.hash = hash; };
 
@@ -62,15 +62,109 @@ export async function schedulePage(main, params) {
   const days = h("div.week");
   for (let i = 0; i < 7; i += 1) {
     const day = addDays(monday, i);
-    days.append(h(`section.day${day === today ? ".today" : ""}`, { "aria-label": longDate(day, { weekday: "long", day: "numeric", month: "long", year: "numeric" }) },
+    days.append(h(`section.day${day === today ? ".today" : ""}`, { dataset: { day }, "aria-label": longDate(day, { weekday: "long", day: "numeric", month: "long", year: "numeric" }) },
       h("h3", {}, longDate(day, { weekday: "long", day: "numeric", month: "short" })),
-      bookings.filter((b) => wallDate(b.start_local) === day).map((b) => h(
-        `button.booking.${b.status}${conflicts.has(b.id) ? ".conflict" : ""}`,
-        { type: "button", onclick: () => editBooking(b) },
-        h("strong", {}, `${wallTime(b.start_local)}–${wallTime(b.end_local)}`), h("br"), b.patient_name,
-        h("br"), `${b.robot} · ${b.status}${conflicts.has(b.id) ? " · CONFLICT" : ""}`))));
+      bookings.filter((b) => wallDate(b.start_local) === day).map((b) => bookingCard(b, conflicts.has(b.id)))));
   }
+  enableDragToMove(days, bookings);
   main.append(days, bookingForm(patients, selectedPatient, zone), calendarPanel());
+}
+
+function bookingCard(booking, inConflict) {
+  const movable = booking.status === "scheduled" && !booking.run_count; // started, finished or cancelled ones stay put
+  return h(`button.booking.${booking.status}${inConflict ? ".conflict" : ""}`, {
+    type: "button", onclick: () => editBooking(booking), draggable: movable ? "true" : undefined,
+    dataset: { bookingId: String(booking.id) },
+    title: movable ? "Drag to another day or time to move (or Alt + arrow keys: ±1 day, ±15 min)" : undefined,
+  },
+  h("strong", {}, `${wallTime(booking.start_local)}–${wallTime(booking.end_local)}`), h("br"), booking.patient_name,
+  h("br"), `${booking.robot} · ${booking.status}${inConflict ? " · CONFLICT" : ""}`);
+}
+
+// --- drag to move (issue 16 §8) --------------------------------------------------------------------
+// A day column's height stands for the clinic's working day in quarter hours: where a booking is dropped
+// picks the wall time (the hint shows it while dragging); dropped onto another booking it takes that
+// booking's start. The move keeps the duration; the service decides (409 conflict, 422 DST gap) and a
+// refusal is shown next to the booking, which stays where it was.
+const DROP_DAY_FIRST_MIN = 6 * 60;
+const DROP_DAY_LAST_MIN = 22 * 60;
+const STEP_MIN = 15;
+const pad2 = (n) => String(n).padStart(2, "0");
+const clockOf = (minutes) => `${pad2(Math.floor(minutes / 60))}:${pad2(minutes % 60)}`;
+
+function dropWallTime(column, event, bookings) {
+  const onBooking = event.target.closest && event.target.closest(".booking");
+  if (onBooking) {
+    const other = bookings.find((b) => String(b.id) === onBooking.dataset.bookingId);
+    if (other) return wallInput(other.start_local);
+  }
+  const box = column.getBoundingClientRect();
+  const top = box.top + column.querySelector("h3").offsetHeight;
+  const fraction = Math.min(1, Math.max(0, (event.clientY - top) / Math.max(1, box.bottom - top)));
+  const span = DROP_DAY_LAST_MIN - DROP_DAY_FIRST_MIN - STEP_MIN;
+  const minutes = DROP_DAY_FIRST_MIN + Math.round((fraction * span) / STEP_MIN) * STEP_MIN;
+  return `${column.dataset.day}T${clockOf(minutes)}`;
+}
+
+// Wall-clock arithmetic on "YYYY-MM-DDTHH:MM" as if it were UTC: the naive clinic time moves, the service
+// then reads it in the clinic's zone (and refuses a time that does not exist there).
+function shiftWall(wall, minutes) {
+  return new Date(Date.parse(`${wall}:00Z`) + minutes * 60000).toISOString().slice(0, 16);
+}
+
+function enableDragToMove(days, bookings) {
+  const byId = (id) => bookings.find((b) => String(b.id) === String(id));
+  let dragged = null;
+  days.addEventListener("dragstart", (event) => {
+    const card = event.target.closest(".booking[draggable]");
+    if (!card) return;
+    dragged = byId(card.dataset.bookingId);
+    event.dataTransfer.setData("text/plain", card.dataset.bookingId);
+    event.dataTransfer.effectAllowed = "move";
+  });
+  days.addEventListener("dragend", () => { dragged = null; days.querySelectorAll(".drop-hint").forEach((el) => el.remove()); });
+  for (const column of days.querySelectorAll("section.day")) {
+    column.addEventListener("dragover", (event) => {
+      if (!dragged) return;
+      event.preventDefault();
+      const wall = dropWallTime(column, event, bookings);
+      days.querySelectorAll(".drop-hint").forEach((el) => { if (el.parentElement !== column) el.remove(); });
+      const hint = column.querySelector(".drop-hint") || column.appendChild(h("div.drop-hint", { "aria-hidden": "true" }));
+      hint.textContent = `Move to ${wallTime(wall)}`;
+    });
+    column.addEventListener("drop", (event) => {
+      if (!dragged) return;
+      event.preventDefault();
+      const booking = dragged;
+      const wall = dropWallTime(column, event, bookings);
+      days.querySelectorAll(".drop-hint").forEach((el) => el.remove());
+      if (wall !== wallInput(booking.start_local)) moveBooking(days, booking, wall);
+    });
+  }
+  // The keyboard equivalent: Alt + ←/→ moves a day, Alt + ↑/↓ a quarter hour.
+  const keySteps = { ArrowLeft: -1440, ArrowRight: 1440, ArrowUp: -STEP_MIN, ArrowDown: STEP_MIN };
+  days.addEventListener("keydown", (event) => {
+    const card = event.target.closest(".booking[draggable]");
+    if (!card || !event.altKey || !(event.key in keySteps)) return;
+    event.preventDefault();
+    const booking = byId(card.dataset.bookingId);
+    moveBooking(days, booking, shiftWall(wallInput(booking.start_local), keySteps[event.key]));
+  });
+}
+
+async function moveBooking(days, booking, wall) {
+  days.querySelectorAll(".move-error").forEach((el) => el.remove());
+  const card = days.querySelector(`.booking[data-booking-id="${booking.id}"]`);
+  card.classList.remove("invalid");
+  const target = `${longDate(wallDate(wall), { weekday: "short", day: "numeric", month: "short" })} ${wallTime(wall)}`;
+  try {
+    await patch(`/sessions/${booking.id}`, { start_local: wall });
+    banner("info", `Session ${booking.id} moved to ${target} (${booking.timezone} time).`);
+    window.dispatchEvent(new HashChangeEvent("hashchange"));
+  } catch (error) {
+    card.classList.add("invalid");
+    card.after(h("div.field-error.move-error", { role: "alert" }, `Could not move to ${target}. ${errorText(error)}`));
+  }
 }
 
 // A calendar app cannot log in: each therapist gets a secret subscription link of their own feed,

@@ -2,7 +2,7 @@
 clinic in Europe/Berlin, "Next week" and "Previous week" move by exactly one week (also across the DST
 change), and a booking returns to its own week with the same patient selected. With the browser in
 another zone (America/New_York), the page still shows and enters the clinic's wall-clock times. The week
-is fetched in one request."""
+is fetched in one request. A booking is dragged to another day and time, or onto a conflict (defect 10)."""
 
 from __future__ import annotations
 
@@ -194,3 +194,116 @@ def test_a_browser_in_another_zone_shows_and_enters_clinic_time(
         headers=clinic_service["headers"],  # type: ignore[arg-type]
     ).json()
     assert [b["start"] for b in booked] == ["2031-04-15T07:15:00Z"]  # 09:15 in Berlin (CEST), not in New York
+
+
+def _book(clinic_service: dict[str, object], patient: dict[str, Any], start_local: str) -> dict[str, Any]:
+    base, headers = str(clinic_service["base_url"]), clinic_service["headers"]
+    prescriptions = httpx.get(
+        f"{base}/api/v1/prescriptions",
+        params={"patient_id": patient["id"]},
+        headers=headers,  # type: ignore[arg-type]
+    ).json()
+    created = httpx.post(
+        f"{base}/api/v1/sessions",
+        json={"patient_id": patient["id"], "prescription_id": prescriptions[0]["id"], "robot": "twin-drag",
+              "start_local": start_local, "duration_s": 1800},
+        headers=headers,  # type: ignore[arg-type]
+    )  # fmt: skip
+    assert created.status_code == 201, created.text
+    return dict(created.json()[0])
+
+
+def _session(clinic_service: dict[str, object], session_id: int) -> dict[str, Any]:
+    base, headers = str(clinic_service["base_url"]), clinic_service["headers"]
+    return dict(httpx.get(f"{base}/api/v1/sessions/{session_id}", headers=headers).json())  # type: ignore[arg-type]
+
+
+def _slot_position(column: Any, clock: str) -> dict[str, float]:
+    """Where in a day column the wall time `clock` is dropped: the column below its heading stands for
+    06:00 to 21:45 in quarter hours (docs/ui.md)."""
+    hours, minutes = (int(part) for part in clock.split(":"))
+    step = (hours * 60 + minutes - 6 * 60) / 15
+    geometry = column.evaluate(
+        "c => ({height: c.getBoundingClientRect().height, top: c.querySelector('h3').offsetHeight,"
+        " border: c.clientTop})"
+    )
+    usable = geometry["height"] - geometry["top"]
+    # 63 quarter hours from 06:00 to 21:45; Playwright's position is from the padding box (inside the border).
+    return {"x": 20.0, "y": geometry["top"] + usable * step / 63 - geometry["border"]}
+
+
+def test_drag_a_booking_to_another_day_and_time_and_onto_a_conflict(
+    clinic_service: dict[str, object], browser: Any
+) -> None:
+    """Issue 16 §8, defect 10: a scheduled booking is dragged to another day and time (clinic-local, same
+    duration); dragged onto another booking of the same robot, the API's refusal is shown next to it and
+    nothing moves. Alt + arrow keys move it by a quarter hour without a mouse."""
+    base = str(clinic_service["base_url"])
+    patients: list[dict[str, Any]] = clinic_service["patients"]  # type: ignore[assignment]
+    first, second = patients
+    moving = _book(clinic_service, first, "2031-05-05T10:00")  # Monday
+    other = _book(clinic_service, second, "2031-05-06T11:00")  # Tuesday, same robot
+    with _logged_in(browser, base, "America/New_York") as page:  # the browser's zone must not matter
+        errors: list[str] = []
+        page.on("pageerror", lambda error: errors.append(str(error)))
+        page.goto(f"{base}/#/schedule?week=2031-05-05")
+        expect(_heading(page)).to_have_text("Schedule: week of 5 May 2031")
+        monday = page.get_by_role("region", name="Monday, 5 May 2031")
+        thursday = page.get_by_role("region", name="Thursday, 8 May 2031")
+        card = monday.get_by_role("button", name="10:00–10:30")
+        card.drag_to(thursday, target_position=_slot_position(thursday, "14:15"))
+        expect(thursday.get_by_role("button", name="14:15–14:45")).to_be_visible()
+        expect(monday.locator(".booking")).to_have_count(0)
+        moved = _session(clinic_service, moving["id"])
+        assert moved["start_local"] == "2031-05-08T14:15:00+02:00" and moved["duration_s"] == 1800, moved
+
+        # Onto the other booking of the same robot: refused in place, in words, and nothing moves.
+        tuesday = page.get_by_role("region", name="Tuesday, 6 May 2031")
+        card = thursday.get_by_role("button", name="14:15–14:45")
+        card.drag_to(tuesday.get_by_role("button", name="11:00–11:30"))
+        refusal = thursday.get_by_role("alert")
+        expect(refusal).to_contain_text("Could not move to Tue 6 May 11:00")
+        expect(refusal).to_contain_text(
+            f"The robot is already booked from 2031-05-06 11:00 to 11:30 (session {other['id']})"
+        )
+        expect(card).to_be_visible()
+        assert _session(clinic_service, moving["id"])["start_local"] == "2031-05-08T14:15:00+02:00"
+        assert _session(clinic_service, other["id"])["start_local"] == "2031-05-06T11:00:00+02:00"
+
+        # The keyboard equivalent: Alt + ↓ is a quarter hour later.
+        card.focus()
+        page.keyboard.press("Alt+ArrowDown")
+        expect(thursday.get_by_role("button", name="14:30–15:00")).to_be_visible()
+        assert _session(clinic_service, moving["id"])["start_local"] == "2031-05-08T14:30:00+02:00"
+
+        # Only scheduled bookings can be dragged: a cancelled one stays put.
+        cancelled = httpx.patch(
+            f"{base}/api/v1/sessions/{other['id']}", json={"status": "cancelled"},
+            headers=clinic_service["headers"],  # type: ignore[arg-type]
+        )  # fmt: skip
+        assert cancelled.status_code == 200, cancelled.text
+        page.reload()
+        expect(tuesday.get_by_role("button", name="11:00–11:30")).not_to_have_attribute("draggable", "true")
+        expect(thursday.get_by_role("button", name="14:30–15:00")).to_have_attribute("draggable", "true")
+        assert errors == []
+
+
+def test_a_move_into_the_spring_gap_is_refused_next_to_the_booking(
+    clinic_service: dict[str, object], browser: Any
+) -> None:
+    """Moved a day later from Saturday 02:30 into Sunday 30 March 2031, 02:30 (Europe/Berlin's spring gap):
+    the 422 is shown next to the booking in words, and the booking keeps its time."""
+    base = str(clinic_service["base_url"])
+    patients: list[dict[str, Any]] = clinic_service["patients"]  # type: ignore[assignment]
+    booking = _book(clinic_service, patients[0], "2031-03-29T02:30")
+    with _logged_in(browser, base, CLINIC_ZONE) as page:
+        page.goto(f"{base}/#/schedule?week=2031-03-24")
+        expect(_heading(page)).to_have_text("Schedule: week of 24 March 2031")
+        saturday = page.get_by_role("region", name="Saturday, 29 March 2031")
+        saturday.get_by_role("button", name="02:30–03:00").focus()
+        page.keyboard.press("Alt+ArrowRight")
+        refusal = saturday.get_by_role("alert")
+        expect(refusal).to_contain_text("Could not move to Sun 30 Mar 02:30")
+        expect(refusal).to_contain_text("does not exist in Europe/Berlin")
+        expect(page.get_by_role("region", name="Sunday, 30 March 2031").locator(".booking")).to_have_count(0)
+    assert _session(clinic_service, booking["id"])["start_local"] == "2031-03-29T02:30:00+01:00"
