@@ -47,6 +47,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from core.errors import refuse_unknown_fields
 from core.kinematics import euler_from_rotation, twin_inverse_kinematics, twin_platform_poses, twist_jacobian
 from core.perception import DEFAULT_HEAD_HEIGHT_M, head_angular_velocity, head_specific_force
 from core.robot import MotionLimits, SSPRobot, TwinRobot
@@ -121,10 +122,7 @@ class OptimalCueingParameters:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> OptimalCueingParameters:
-        known = {item.name for item in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise CueingError(unknown[0], data[unknown[0]], f"unknown optimal-cueing parameter; known: {sorted(known)}")
+        refuse_unknown_fields(cls, data, CueingError, "optimal-cueing parameter")
         return cls(**dict(data))
 
     @property

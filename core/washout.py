@@ -40,6 +40,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from core.errors import refuse_unknown_fields
 from core.robot import GRAVITY_M_S2
 from core.shaping import (
     ParameterError,
@@ -108,10 +109,7 @@ class WashoutParameters:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> WashoutParameters:
-        known = {item.name for item in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ParameterError(unknown[0], data[unknown[0]], f"unknown washout parameter; known: {sorted(known)}")
+        refuse_unknown_fields(cls, data, ParameterError, "washout parameter")
         return cls(**dict(data))
 
 

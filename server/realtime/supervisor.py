@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from core.clearance import IK_EXACT_BELOW_M
-from core.errors import InvalidValueError
+from core.errors import InvalidValueError, refuse_unknown_fields
 from server.realtime.telemetry import StopReason, SupervisorState
 
 MOTION_STATES = (SupervisorState.RUNNING, SupervisorState.PAUSED, SupervisorState.STOPPING)
@@ -99,10 +99,7 @@ class SupervisorConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SupervisorConfig:
-        known = {item.name for item in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise SupervisorConfigError(unknown[0], data[unknown[0]], "unknown supervisor setting")
+        refuse_unknown_fields(cls, data, SupervisorConfigError, "supervisor setting")
         return cls(**data)
 
 
