@@ -9,9 +9,10 @@ the past. The problem, per segment:
                   + platform usage (displacement, angle, velocity) + w_j ‖jerk‖²
     subject to the twin's workspace at every knot: every slider within its stroke, both joint cones,
                the stance tilt, the Jacobian condition number of each robot (singularity margin; the
-               IK's fixed working-mode branch keeps the assembly mode), a collision clearance when a
-               clearance function is given; slider velocity and acceleration; the rotation the cue does
-               not ask for below the canal perception threshold (|ω_platform − ω_cue| ≤ 3 °/s roll,
+               IK's fixed working-mode branch keeps the assembly mode), the collision clearance between
+               the twin's parts (`core.clearance`, as the IK reports it; by default the robot's margin plus
+               the 20 mm stop margin, what the worker's offline check enforces); slider velocity and
+               acceleration; the rotation the cue does not ask for below the canal perception threshold (|ω_platform − ω_cue| ≤ 3 °/s roll,
                3.6 °/s pitch by default); start and end at neutral, at rest.
 
 Errors are perceived through the paper's otolith and canal models (`core.vestibular`), discretised at the
@@ -47,15 +48,25 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
+from core.clearance import IK_EXACT_BELOW_M, min_clearance
 from core.errors import refuse_unknown_fields
-from core.kinematics import euler_from_rotation, twin_inverse_kinematics, twin_platform_poses, twist_jacobian
+from core.kinematics import (
+    PoseCollisions,
+    euler_from_rotation,
+    twin_inverse_kinematics,
+    twin_platform_poses,
+    twist_jacobian,
+)
 from core.perception import DEFAULT_HEAD_HEIGHT_M, head_angular_velocity, head_specific_force
 from core.robot import MotionLimits, SSPRobot, TwinRobot
 from core.shaping import ParameterError, require_finite
 from core.vestibular import VestibularModel, VestibularParameters
 
-# Stance poses (N, 6) → minimum collision clearance (N,) m; supplied by the twin's clearance model.
+# Stance poses (N, 6) → minimum collision clearance (N,) m; by default the twin's parts (core.clearance).
 ClearanceFunction = Callable[[np.ndarray], np.ndarray]
+# The extra clearance normal motion keeps so that a controlled stop can brake before parts meet: the
+# default of server.realtime.supervisor.SupervisorConfig.clearance_margin_m (a test keeps them equal).
+STOP_CLEARANCE_MARGIN_M = 0.02
 
 POSITION_SCALE_M = 0.1  # usage is measured in units of the travel budget of one cue
 ANGLE_SCALE_RAD = 0.1
@@ -132,14 +143,30 @@ class OptimalCueingParameters:
 
 @dataclass(frozen=True)
 class CueingWorkspace:
-    """What the twin can do: its geometry, the limits normal motion keeps, and (optionally) clearance."""
+    """What the twin can do: its geometry, the limits normal motion keeps, and the clearance of its parts."""
 
     twin: TwinRobot
     limits: MotionLimits
     stroke_min_m: np.ndarray  # (12,) right sliders 1–6, then left
     stroke_max_m: np.ndarray
+    # None: the twin's own parts (core.clearance), as its IK and the worker's independent check see them.
     clearance_m: ClearanceFunction | None = None
-    clearance_min_m: float = 0.0
+    # None: the twin's margin plus the stop margin of normal motion (what the offline check enforces).
+    clearance_min_m: float | None = None
+
+    def __post_init__(self) -> None:
+        value = self.clearance_min_m
+        if value is not None and (
+            isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value)
+        ):
+            raise CueingError("clearance_min_m", value, "must be a finite number of metres (or None: the twin's)")
+
+    @property
+    def minimum_clearance_m(self) -> float:
+        """The smallest clearance (m) between parts the plan keeps."""
+        if self.clearance_min_m is not None:
+            return float(self.clearance_min_m)
+        return self.twin.parts.clearance_min_m + STOP_CLEARANCE_MARGIN_M
 
     def quantity_bounds(self, fraction: float) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of `workspace_quantities`' columns, each limit scaled toward neutral."""
@@ -150,7 +177,7 @@ class CueingWorkspace:
                 self.stroke_min_m,
                 np.full(25, -np.inf),
                 np.full(2, 1.0 / limits.condition_number_max),
-                [self.clearance_min_m] * self._clearances,
+                [self.minimum_clearance_m],
             ]
         )
         high = np.concatenate(
@@ -160,17 +187,13 @@ class CueingWorkspace:
                 np.full(12, limits.platform_joint_cone_rad),
                 [limits.tilt_max_rad],
                 np.full(2, np.inf),
-                [np.inf] * self._clearances,
+                [np.inf],
             ]
         )
         # Pull each finite bound toward the neutral value: the planner keeps room for what lies between knots.
         low = np.where(np.isfinite(low), neutral + fraction * (low - neutral), low)
         high = np.where(np.isfinite(high), neutral + fraction * (high - neutral), high)
         return low, high
-
-    @property
-    def _clearances(self) -> int:
-        return 0 if self.clearance_m is None else 1
 
 
 def _inverse_condition_number(robot: SSPRobot, poses: np.ndarray) -> np.ndarray:
@@ -182,16 +205,18 @@ def _inverse_condition_number(robot: SSPRobot, poses: np.ndarray) -> np.ndarray:
 
 
 def _twin_sliders(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
-    solutions = twin_inverse_kinematics(twin, poses, check=False)
+    solutions = twin_inverse_kinematics(twin, poses, check=False, clearance_check=False)
     return np.concatenate([solutions[side].slider_positions_m for side in twin.sides], axis=1)
 
 
 def workspace_quantities(workspace: CueingWorkspace, poses: np.ndarray) -> np.ndarray:
     """Every constrained quantity of the twin for stance poses (N, 6): sliders (12, m), base cones (12),
     platform cones (12), stance tilt (1, rad), inverse condition number of each robot (2; it falls to 0
-    nearly linearly toward a singularity, where the condition number itself explodes), clearance (0 or 1,
-    m). NaN where a rod cannot reach its rail."""
+    nearly linearly toward a singularity, where the condition number itself explodes), the smallest
+    clearance between parts (1, m). NaN where a rod cannot reach its rail."""
     twin = workspace.twin
+    # The IK's own collision check gives the clearance (exact up to the margin + IK_EXACT_BELOW_M, the
+    # bound beyond): the same number the worker's check reads, at no second cost.
     solutions = twin_inverse_kinematics(twin, poses, check=False)
     sides = [solutions[side] for side in twin.sides]
     sliders = np.concatenate([s.slider_positions_m for s in sides], axis=1)
@@ -208,11 +233,21 @@ def workspace_quantities(workspace: CueingWorkspace, poses: np.ndarray) -> np.nd
         tilt[:, None],
         conditions,
     ]
-    if workspace.clearance_m is not None:
-        columns.append(np.asarray(workspace.clearance_m(poses), dtype=float)[:, None])
+    columns.append(_clearance(workspace, poses, sides[0].collisions)[:, None])
     quantities = np.concatenate(columns, axis=1)
     quantities[~reachable] = np.nan
     return quantities
+
+
+def _clearance(workspace: CueingWorkspace, poses: np.ndarray, collisions: PoseCollisions | None) -> np.ndarray:
+    """(N,) smallest clearance (m): the workspace's function, else the twin's parts as the IK reported them
+    (exact wherever it can matter), else (a margin beyond the IK's exact range) computed exactly."""
+    if workspace.clearance_m is not None:
+        return np.asarray(workspace.clearance_m(poses), dtype=float)
+    exact_up_to = workspace.twin.parts.clearance_min_m + IK_EXACT_BELOW_M
+    if collisions is not None and workspace.minimum_clearance_m < exact_up_to:
+        return np.asarray(collisions.clearance_m, dtype=float)
+    return min_clearance(workspace.twin, poses).clearance_m
 
 
 # --- The cubic B-spline ------------------------------------------------------------------------------

@@ -10,12 +10,11 @@ Figures (SI in the JSON keys):
 - `peak_tilt_rate_rad_s`: the largest roll or pitch rate of the platform that the cue does not ask for;
 - `max_condition_number`: of either robot's Jacobian; `max_stroke_use_fraction`: the largest slider
   excursion from neutral over the room to that side's stroke end;
-- `min_clearance_mm`: from `core.clearance` when that module is installed, else null.
+- `min_clearance_mm`: the smallest clearance between the twin's parts (`core.clearance`) over the timeline.
 """
 
 from __future__ import annotations
 
-import importlib
 import json
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from core.clearance import min_clearance
 from core.kinematics import condition_number, euler_from_rotation, twin_inverse_kinematics, twin_platform_poses
 from core.perception import DEFAULT_HEAD_HEIGHT_M, head_height_m
 from core.robot import GRAVITY_M_S2, TwinRobot
@@ -94,14 +94,9 @@ SUITE: dict[str, dict[str, Any]] = {
 }
 
 
-def _clearance_m(twin: TwinRobot, poses: np.ndarray) -> np.ndarray | None:
-    """Minimum collision clearance (N,) m from `core.clearance.min_clearance_m(twin, poses)`, if installed."""
-    try:
-        module = importlib.import_module("core.clearance")
-    except ImportError:
-        return None
-    function = getattr(module, "min_clearance_m", None)
-    return None if function is None else np.asarray(function(twin, poses), dtype=float)
+def _clearance_m(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
+    """Smallest collision clearance (N,) m between the twin's parts (`core.clearance`)."""
+    return min_clearance(twin, poses).clearance_m
 
 
 def _condition_numbers(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
@@ -158,7 +153,7 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
         "perceived_angular_velocity_error_rms_rad_s": float(np.sqrt(np.mean(np.sum(rate_error**2, axis=1)))),
         "peak_tilt_rate_rad_s": float(np.max(uncued)),
         "max_condition_number": float(np.nanmax(_condition_numbers(twin, poses))),
-        "min_clearance_mm": None if clearance is None else float(np.min(clearance) * 1e3),
+        "min_clearance_mm": float(np.nanmin(clearance) * 1e3),
         "max_stroke_use_fraction": float(np.max(stroke_use)),
         "_planning_cpu_s": planning_cpu_s,  # for the benchmark: the wall clock of a shared machine is inflated
         "_series": {

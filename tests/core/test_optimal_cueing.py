@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from core.clearance import min_clearance
 from core.fidelity import fidelity
 from core.optimal_cueing import (
     CueingError,
@@ -156,3 +157,17 @@ def test_a_clearance_function_is_a_constraint_of_the_plan(workspace: CueingWorks
     )
     plan = OptimalCueingPlanner(walled).plan(force, rates, DT)
     assert 0.015 < np.max(np.abs(plan.pose[:, 1])) <= 0.02
+
+
+def test_the_twin_clearance_feeds_the_planner_by_default(workspace: CueingWorkspace) -> None:
+    """§3 constraints: without a clearance function the workspace uses the twin's own parts (core.clearance,
+    as the IK and the independent check see them) with the robot's margin plus the 20 mm stop margin."""
+    poses = np.zeros((3, 6))
+    poses[:, 1] = [0.0, 0.05, -0.1]
+    quantities = workspace_quantities(workspace, poses)
+    expected = min_clearance(workspace.twin, poses).clearance_m
+    assert quantities.shape[1] == 40
+    np.testing.assert_allclose(quantities[:, -1], expected, atol=1e-12)
+    assert workspace.minimum_clearance_m == pytest.approx(workspace.twin.parts.clearance_min_m + 0.02)
+    low, _ = workspace.quantity_bounds(1.0)
+    assert low[-1] == pytest.approx(workspace.minimum_clearance_m)

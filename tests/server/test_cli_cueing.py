@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from server.cli.main import app
@@ -38,6 +39,10 @@ def test_plan_prints_exactly_the_contract_and_optimal_beats_classical(tmp_path: 
         assert results[cueing]["feasible"] is True and results[cueing]["reason"] is None
         assert results[cueing]["duration_s"] > 6.0 and results[cueing]["max_stroke_use_fraction"] < 1.0
     optimal, classical = results["optimal"], results["classical"]
+    # The twin's collision clearance (core.clearance), never null: the default twin's closest parts are
+    # the inner sliders 3 and 4 of the two robots, 80 mm apart on parallel rails whatever the pose.
+    for result in results.values():
+        assert result["min_clearance_mm"] == pytest.approx(80.0, abs=0.5)
     assert (
         optimal["perceived_specific_force_error_rms_m_s2"] < 0.5 * classical["perceived_specific_force_error_rms_m_s2"]
     )

@@ -3,9 +3,14 @@ own offline check at every sample, and played by the tick pipeline as planned.""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
+from core.clearance import min_clearance
+from core.layout import LayoutCandidate
+from core.optimal_cueing import STOP_CLEARANCE_MARGIN_M, CueingWorkspace
 from core.perception import tilt_rate_check
 from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
 from server.hal.kinematic import KinematicHal
@@ -69,3 +74,37 @@ def test_an_unknown_cueing_algorithm_is_refused_naming_the_field(twin) -> None:
     with pytest.raises(PrescriptionError) as refused:
         plan_prescription({"cueing": "psychic", "segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}, twin)
     assert refused.value.field == "cueing" and "optimal" in refused.value.limit
+
+
+# A buildable layout of the study's space (core.layout) where clearance binds: bases 0.93 m off the centre
+# line, yawed 4° inward, so that the inner sliders 4 of the two robots close in as the stance surges
+# backward (38.8 mm at neutral, 25 mm — the robot's 5 mm plus the 20 mm stop margin — near 0.1 m of surge).
+CLOSE_LAYOUT = LayoutCandidate(0.93, 0.0, math.radians(4.0), 0.4, True)
+SURGE_SINE = {"kind": "sine", "axis": "x", "amplitude_m_s2": 1.0, "frequency_hz": 0.4}
+
+
+def test_the_optimal_plan_keeps_the_collision_clearance_the_worker_checks() -> None:
+    """§3 constraints: the plan keeps the clearance of the twin's parts (core.clearance) with the margin the
+    independent check enforces (SessionLimits.clearance_min_m plus the stop margin), at every sample."""
+    twin = CLOSE_LAYOUT.twin()
+    plan = plan_prescription({"cueing": "optimal", "segments": [{"cue": SURGE_SINE, "duration_s": 8.0}]}, twin)
+    report = check_plan(plan, twin)  # the worker's own check: raises at the first breach, collision included
+    assert report.samples > 8_000
+    poses = plan.segments[0].planned_poses
+    assert poses is not None
+    clearance = min_clearance(twin, poses).clearance_m
+    margin = plan.segments[0].motion_limits.clearance_min_m
+    assert margin == pytest.approx(twin.parts.clearance_min_m + SupervisorConfig().clearance_margin_m)
+    # Not vacuous: the constraint is what stops the surge (within 6 mm of the margin; unconstrained: 14 mm) ...
+    assert margin <= float(np.min(clearance)) < margin + 0.006
+    # ... and the plan still surges both ways (the cue is given as far as the clearance lets it).
+    assert np.min(poses[:, 0]) < -0.05 and np.max(poses[:, 0]) > 0.1
+
+
+def test_the_planner_default_clearance_margin_is_the_one_the_offline_check_enforces(twin) -> None:
+    """`CueingWorkspace(twin, limits, stroke_min, stroke_max)` keeps what `check_plan` requires by default."""
+    assert SupervisorConfig().clearance_margin_m == STOP_CLEARANCE_MARGIN_M
+    plan = plan_prescription({"segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}, twin)
+    limits = plan.segments[0].motion_limits
+    workspace = CueingWorkspace(twin, limits.motion, limits.stroke_min_m, limits.stroke_max_m)
+    assert workspace.minimum_clearance_m == pytest.approx(limits.clearance_min_m)
