@@ -776,6 +776,9 @@ class _Window:
         if forced_knots:
             active[sorted(forced_knots)] = True
         active &= np.isfinite(low) | np.isfinite(high)
+        # A row whose quantity does not move with the pose (e.g. the clearance of sliders on parallel rails,
+        # the default twin's closest pair) constrains nothing: left out, it does not burden the ADMM.
+        active &= np.any(q_jacobian != 0.0, axis=2)
         knots, columns = np.nonzero(active)
         if knots.size:
             gradient = q_jacobian[knots, columns]  # (R, 6)
@@ -833,8 +836,9 @@ class OptimalCueingPlanner:
         self.force_thresholds = self.vestibular.specific_force_thresholds_m_s2
         self.rate_thresholds = self.vestibular.angular_velocity_thresholds_rad_s
         self.neutral_quantities = workspace_quantities(workspace, np.zeros((1, 6)))[0]
-        # Singularity margin and clearance are the least linear: their rows are always in the QP.
-        self.always_active = np.arange(len(self.neutral_quantities)) >= 37
+        # The singularity margin is the least linear: its rows are always in the QP. Clearance rows join, like
+        # the others, near their limit (on the default twin they never do, and idle rows slow the ADMM).
+        self.always_active = np.isin(np.arange(len(self.neutral_quantities)), (37, 38))
         self.plan_bounds = workspace.quantity_bounds(self.params.limit_fraction)
         self.accept_bounds = workspace.quantity_bounds(self.acceptance_fraction)
         self.warm_start: np.ndarray | None = None
