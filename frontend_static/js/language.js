@@ -47,6 +47,11 @@ export function describeRobot(state) {
 }
 
 export const words = (name) => String(name ?? "").replace(/_/g, " ");
+// The motion-cueing algorithm of a prescription (the API's `cueing`), in the clinician's words.
+export const CUEING_WORDS = {
+  classical: "Classical washout (paper)",
+  optimal: "Optimal (planned over the whole prescription)",
+};
 
 // --- run outcomes and events -------------------------------------------------------------------------------
 export const OUTCOME_WORDS = {

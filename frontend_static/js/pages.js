@@ -2,7 +2,7 @@
 import { get, patch, post, put, query } from "./api.js";
 import { protocolByKey } from "./protocols.js";
 import { staticChart } from "./charts.js";
-import { OUTCOME_WORDS, rejectionWords, words } from "./language.js";
+import { CUEING_WORDS, OUTCOME_WORDS, rejectionWords, words } from "./language.js";
 import {
   M_TO_MM, RAD_TO_DEG, badge, banner, clear, clearErrors, confirmDialog, field, fmt, fmtDateTime, fmtTime, h,
   showError, showFieldErrors, table,
@@ -159,9 +159,10 @@ export async function patientPage(main, patientId) {
     h("h2", {}, "Prescriptions"),
     h("div.row", {}, h("a.button.primary", { href: `#/prescriptions/new?patient=${patientId}` }, "New prescription"),
       h("a.button", { href: `#/schedule?patient=${patientId}` }, "Schedule a session")),
-    prescriptions.length ? table(["Name", "Version", "Segments", "Total duration", ""], prescriptions.map((p) => h("tr", {},
+    prescriptions.length ? table(["Name", "Version", "Segments", "Total duration", "Motion cueing", ""], prescriptions.map((p) => h("tr", {},
       h("td", {}, p.name), h("td.num", {}, `v${p.latest_version}`), h("td.num", {}, p.current.content.segments.length),
       h("td.num", {}, fmt(p.current.content.segments.reduce((s, x) => s + x.duration_s, 0), "s", 0)),
+      h("td", {}, CUEING_WORDS[p.current.content.cueing || "classical"]),
       h("td", {}, h("a.button", { href: `#/prescriptions/${p.id}` }, "Edit / preview"))))) : h("p.muted", {}, "No prescription yet."),
   );
   const runs = trend ? trend.runs : [];
@@ -397,8 +398,16 @@ export async function prescriptionPage(main, prescriptionId, params) {
     : protocol ? protocol.segments.map((s) => structuredClone(s)) : [{}];
   const name = h("input", { value: existing ? existing.name : protocol ? protocol.name : "", "data-field": "name", required: true });
   const note = h("input", { value: protocol ? `From the protocol “${protocol.name}”` : "", "data-field": "note", placeholder: existing ? "What changed" : "" });
+  // The algorithm for the whole prescription (issue 14): the paper's washout stays the default.
+  const storedCueing = (existing && existing.current.content.cueing) || "classical";
+  const cueing = h("select", { name: "cueing", "data-field": "cueing" },
+    Object.entries(CUEING_WORDS).map(([value, label]) => h("option", { value, selected: value === storedCueing }, label)));
   const segmentHost = h("div.segments");
   const previewHost = h("div");
+  // A preview on screen is computed again for the algorithm chosen, so it never shows the other one.
+  cueing.addEventListener("change", () => {
+    if (previewHost.childElementCount) runPreview(form, previewHost, readSegments(), patientId, cueing.value);
+  });
   let editors = [];
   const renderSegments = () => {
     clear(segmentHost);
@@ -410,9 +419,9 @@ export async function prescriptionPage(main, prescriptionId, params) {
     novalidate: true,
     onsubmit: async (event) => {
       event.preventDefault();
-      const body = { name: name.value, segments: readSegments(), note: note.value };
+      const body = { name: name.value, segments: readSegments(), note: note.value, cueing: cueing.value };
       // The robot's own check first: a prescription it would refuse is saved only on purpose.
-      const verdict = await runPreview(form, previewHost, body.segments, patientId);
+      const verdict = await runPreview(form, previewHost, body.segments, patientId, body.cueing);
       if (verdict === null) return;
       if (!verdict.accepted) {
         const ok = await confirmDialog({ title: "The robot would refuse this prescription",
@@ -430,31 +439,38 @@ export async function prescriptionPage(main, prescriptionId, params) {
       }
     },
   },
-  h("div.form-grid", {}, field("Prescription name", name), field("Version note", note)),
+  h("div.form-grid", {}, field("Prescription name", name), field("Version note", note),
+    field("Motion cueing", cueing, { hint: "Classical: the paper's washout filter, tick by tick. Optimal: the platform's motion "
+      + "planned over the whole prescription before it starts, within every limit of the robot." })),
   segmentHost,
   h("div.row", {},
     h("button.secondary", { type: "button", onclick: () => { segments = readSegments(); segments.push({}); renderSegments(); } }, "Add segment"),
-    h("button.secondary", { type: "button", id: "preview-button", onclick: () => runPreview(form, previewHost, readSegments(), patientId) }, "Preview motion"),
+    h("button.secondary", { type: "button", id: "preview-button", onclick: () => runPreview(form, previewHost, readSegments(), patientId, cueing.value) }, "Preview motion"),
     h("button.primary", { type: "submit" }, existing ? "Save as new version" : "Save prescription")));
   renderSegments();
   main.append(
     h("h1", {}, existing ? `Prescription: ${existing.name} (v${existing.latest_version})` : "New prescription"),
     h("p", {}, "For ", h("a", { href: `#/patients/${patientId}` }, patient.name), `: ${fmt(patient.body_mass_kg, "kg", 0)}, ${fmt(patient.height_m * 100, "cm", 0)}.`,
       protocol ? ` Started from the protocol “${protocol.name}”: adapt it to the patient, preview, then save.` : ""),
+    existing ? h("p#prescription-cueing", {}, h("strong", {}, "Motion cueing: "), CUEING_WORDS[storedCueing]) : "",
     form, previewHost);
   name.focus();
 }
 
 // Runs the preview; returns the verdict, or null when the prescription itself was refused (shown at its fields).
-async function runPreview(form, host, segments, patientId) {
-  clear(host).append(h("p.panel", { role: "status" }, "Computing the preview through the robot's own pipeline…"));
+// A preview asked for while another is computed supersedes it: only the latest is shown (null for the rest).
+async function runPreview(form, host, segments, patientId, cueing) {
+  const ticket = (host.previewTicket = (host.previewTicket || 0) + 1);
+  clear(host).append(h("p.panel", { role: "status" }, `Computing the preview (${CUEING_WORDS[cueing]}) through the robot's own pipeline…`));
   try {
-    const preview = await post("/prescriptions/preview", { segments, patient_id: patientId });
+    const preview = await post("/prescriptions/preview", { segments, patient_id: patientId, cueing });
+    if (host.previewTicket !== ticket) return null;
     showFieldErrors(form, {});
     clearErrors("form");
     renderPreview(clear(host), preview);
     return preview.verdict;
   } catch (error) {
+    if (host.previewTicket !== ticket) return null;
     clear(host);
     showRefusal(form, error);
     return null;
@@ -468,7 +484,8 @@ function renderPreview(host, p) {
     : h("p.verdict.bad", { role: "alert" }, `The robot would refuse this prescription. ${rejectionWords(p.verdict.rejection)}`,
       h("details.raw", {}, h("summary", {}, "technical details"), h("pre", {}, p.verdict.rejection.message)));
   const charts = h("div.charts");
-  host.append(h("h2", {}, "Preview"), verdict, charts);
+  const algorithm = CUEING_WORDS[p.cueing];
+  host.append(h("h2", {}, "Preview"), h("p#preview-cueing", {}, h("strong", {}, "Motion cueing: "), algorithm), verdict, charts);
   const t = p.time_s;
   const axes = ["x (AP)", "y (ML)", "z"];
   staticChart(charts, "Platform position", "mm", t, p.platform_position_m.map((c) => c.map((v) => (v == null ? null : v * M_TO_MM))),
@@ -481,11 +498,33 @@ function renderPreview(host, p) {
     perceived.push(p.perceived_cue_m_s2[k], p.perceived_platform_m_s2[k]);
     series.push({ label: `cue ${axes[k]}`, color: k ? "#d1495b" : "#0b4fa8", dash: [8, 5] }, { label: `platform ${axes[k]}`, color: k ? "#d1495b" : "#0b4fa8" });
   });
-  staticChart(charts, "Perceived acceleration: cue (dashed) vs platform (otolith model)", "m/s²", t, perceived, series);
+  staticChart(charts, `Perceived acceleration at the head (${fmt(p.head_height_m * 100, "cm", 0)} above the feet, otolith model): `
+    + `cue (dashed) vs delivered by ${algorithm}`, "m/s²", t, perceived, series);
+  tiltRateChart(charts, p);
   const travel = p.slider_position_m.map((column, i) => column.map((v) => (v == null ? null
     : (100 * (v - p.stroke_min_m[i])) / (p.stroke_max_m[i] - p.stroke_min_m[i]))));
   staticChart(charts, "Slider travel within the stroke (0 % and 100 % = stroke ends)", "%", t, travel,
     travel.map((_, i) => ({ label: `${i < 6 ? "R" : "L"}${(i % 6) + 1}`, dash: i < 6 ? undefined : [6, 4], width: 1.5 })), { yRange: [0, 100] });
+}
+
+// Roll and pitch rate of the platform beyond what the cue asks for, against the canal threshold the optimal
+// planner keeps (core.optimal_cueing defaults: 3 °/s roll, 3.6 °/s pitch): above it the patient feels the
+// tilt as a rotation. Differenced from the plotted samples, so a peak shorter than their spacing is smoothed.
+const TILT_RATE_THRESHOLDS_DEG_S = [3.0, 3.6];
+function tiltRateChart(charts, p) {
+  const t = p.time_s;
+  const uncued = [0, 1].map((k) => t.map((_, i) => {
+    const j = Math.max(i - 1, 0), l = Math.min(i + 1, t.length - 1);
+    const [a, b] = [p.platform_angles_rad[k][j], p.platform_angles_rad[k][l]];
+    if (a == null || b == null || l === j) return null;
+    return Math.abs((b - a) / (t[l] - t[j]) - p.cue_angular_velocity_rad_s[k][i]) * RAD_TO_DEG;
+  }));
+  const spacingMs = t.length > 1 ? ((t[t.length - 1] - t[0]) / (t.length - 1)) * 1000 : 0;
+  staticChart(charts, `Tilt rate the cue does not ask for, against the perception threshold (from samples ${fmt(spacingMs, "ms", 0)} apart)`, "°/s", t,
+    [...uncued, ...TILT_RATE_THRESHOLDS_DEG_S.map((v) => t.map(() => v))],
+    [{ label: "roll" }, { label: "pitch" },
+      { label: "roll threshold", color: "#0b4fa8", dash: [4, 4], width: 1 }, { label: "pitch threshold", color: "#d1495b", dash: [4, 4], width: 1 }],
+    { yRange: (u, min, max) => [0, Math.max(max ?? 0, 4.5)] });
 }
 
 // --- schedule: the clinic-local week view lives in schedule.js ------------------------------------
