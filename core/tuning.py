@@ -24,6 +24,7 @@ baseline in both objectives when there are any.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -59,7 +60,7 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
 }
 CONSTRAINT_NAMES = ("stroke_excess_m", "tilt_rate_excess_rad_s", "tilt_coordination_shortfall")
 INPUTS = ("suite", "paper-square-wave")
-BOUND_TOLERANCE_FRACTION = 0.01  # of the bound's range: an optimum this close to a bound "sits on" it
+BOUND_TOLERANCE_FRACTION = 0.01  # of the bound's range in log scale: an optimum this close to a bound "sits on" it
 # Tilt coordination counts as switched off when the paper's sustained 0.2 g step (held 10 s) tilts less
 # than this fraction of asin(0.2): the sustained cue is then carried by nothing (issue 14 §4).
 TILT_COORDINATION_OFF_FRACTION = 0.5
@@ -137,16 +138,30 @@ class WashoutTuningProblem(Problem):
         self.tune_damping = tune_damping
         self.variable_names = (*TUNED_FREQUENCIES, "damping") if tune_damping else TUNED_FREQUENCIES
         limits = {**DEFAULT_BOUNDS, **(bounds or {})}
+        require_positive("sample_period_s", self.sample_period_s)
+        # The discretised filters exist only below a tenth of Nyquist (`core.washout.design`): a break
+        # frequency bound above that is refused here, not by the first generation that samples it.
+        frequency_cap = 0.1 * math.pi / self.sample_period_s
+        self.frequency_cap_rad_s = frequency_cap
         for name in self.variable_names:
             low, high = limits[name]
             require_positive(f"bounds.{name}", [low, high])
             if not low < high:
                 raise ParameterError(f"bounds.{name}", [low, high], "lower bound must be < upper bound")
+            if name in TUNED_FREQUENCIES and high >= frequency_cap:
+                raise ParameterError(
+                    f"bounds.{name}",
+                    [low, high],
+                    f"upper bound must be below a tenth of Nyquist, {frequency_cap:.4g} rad/s at sample_period_s "
+                    f"{self.sample_period_s:g} s (a smaller sample period allows more)",
+                )
         self.vestibular = VestibularModel(vestibular, self.sample_period_s)
         self.scales = scales or FidelityScales()
         make_input = tuning_suite if tuning_input == "suite" else paper_square_wave
         self.specific_force, self.angular_velocity = make_input(self.sample_period_s)
-        probe = np.zeros((round(TILT_PROBE_HOLD_S / TILT_PROBE_SAMPLE_PERIOD_S), 3))
+        # The tilt probe runs at least as finely as the suite, so it accepts every break frequency the suite does.
+        self._probe_period_s = min(TILT_PROBE_SAMPLE_PERIOD_S, self.sample_period_s)
+        probe = np.zeros((round(TILT_PROBE_HOLD_S / self._probe_period_s), 3))
         probe[:, 1] = TILT_PROBE_FORCE_G * GRAVITY_M_S2
         self._tilt_probe = probe
         self._neutral_sliders_m, self._stroke_jacobian = _linearised_twin_ik(self.twin)
@@ -201,7 +216,7 @@ class WashoutTuningProblem(Problem):
 
     def _tilt_shortfall(self, x: np.ndarray) -> np.ndarray:
         """Required tilt-coordination fraction minus the one each candidate reaches (≤ 0 is feasible)."""
-        stacked = design(self.parameters(x), TILT_PROBE_SAMPLE_PERIOD_S)
+        stacked = design(self.parameters(x), self._probe_period_s)
         signals = run_washout(stacked, self._tilt_probe.T, np.zeros_like(self._tilt_probe).T)
         fraction = signals.tilt[:, 0, -1] / np.arcsin(TILT_PROBE_FORCE_G)
         return self.tilt_coordination_min_fraction - fraction
@@ -226,23 +241,112 @@ class WashoutTuningProblem(Problem):
         return np.max(np.abs(rate), axis=(-2, -1)) - self.baseline.tilt_rate_limit_rad_s
 
 
-def bounds_hit(problem: WashoutTuningProblem, params: WashoutParameters) -> dict[str, str]:
-    """Which tuned variables of `params` sit on a bound of `problem` ("lower" or "upper")."""
-    hits = {}
+# Why an optimum would sit on each bound: what moving that break frequency (or ξ) does to the washout.
+BOUND_REASONS: dict[tuple[str, str], str] = {
+    ("translational_break_rad_s", "upper"): (
+        "ω_a is the break of the translational high-pass (Formula 12): a higher ω_a washes the translation out "
+        "sooner, so less stroke and platform motion and less of each onset delivered. On the upper bound the "
+        "knee asks for as little translation as the bound allows."
+    ),
+    ("translational_break_rad_s", "lower"): (
+        "a lower ω_a keeps translating longer: more stroke and platform motion (the stroke constraint binds)."
+    ),
+    ("translational_first_order_break_rad_s", "upper"): (
+        "ω_a′ is the extra first-order high-pass of Formula 12: a higher ω_a′ also washes the translation out "
+        "sooner (less drift after a sustained cue, less platform motion). On the upper bound the knee asks for "
+        "as little translation as the bound allows."
+    ),
+    ("translational_first_order_break_rad_s", "lower"): (
+        "a lower ω_a′ lets the platform drift after a sustained cue: more stroke and platform motion."
+    ),
+    ("tilt_break_rad_s", "upper"): (
+        "ω_h is the tilt low-pass of Formula 13: a higher ω_h tilts sooner and faster (the tilt-rate constraint binds)."
+    ),
+    ("tilt_break_rad_s", "lower"): (
+        "a lower ω_h tilts later and less within a cue: tilt coordination fades (its constraint binds)."
+    ),
+    ("damping", "upper"): "a higher ξ slows both channels' responses: less overshoot, slower cues.",
+    ("damping", "lower"): "a lower ξ gives faster responses with overshoot (more motion, a wrong-sign rebound).",
+}
+BEYOND_BOUND_FACTOR = 2.0  # how far past a bound `bounds_hit` looks: × 2 beyond an upper, ÷ 2 below a lower
+
+
+def bounds_hit(problem: WashoutTuningProblem, params: WashoutParameters) -> dict[str, dict[str, Any]]:
+    """The tuned variables of `params` that sit on a bound of `problem` (within 1 % of its log range), each with
+    its side, the bound, its value, why a bound of that side binds (`BOUND_REASONS`), and the objectives and
+    feasibility with only that variable moved `BEYOND_BOUND_FACTOR` past the bound: whether widening it
+    would trade one objective for the other (the bound shapes the knee) or change nothing (it does not)."""
+    x = problem.variables_of(params)
+    objectives, _ = problem.objectives_and_constraints(x[None, :])
+    at_knee = dict(zip(OBJECTIVE_NAMES, map(float, objectives[0]), strict=True))
+    hits: dict[str, dict[str, Any]] = {}
     for index, name in enumerate(problem.variable_names):
-        value = problem.variables_of(params)[index]
-        low, high = problem.xl[index], problem.xu[index]
-        tolerance = BOUND_TOLERANCE_FRACTION * (high - low)
-        if value <= low + tolerance:
-            hits[name] = "lower"
-        elif value >= high - tolerance:
-            hits[name] = "upper"
+        low, high = float(problem.xl[index]), float(problem.xu[index])
+        # In decades: the widened bounds span 3–4 of them, where 1 % of the linear range would call ω_h =
+        # 0.37 rad/s "on" a lower bound of 0.005 rad/s.
+        tolerance = BOUND_TOLERANCE_FRACTION * math.log(high / low)
+        if math.log(x[index] / low) <= tolerance:
+            side, bound, past = "lower", low, low / BEYOND_BOUND_FACTOR
+        elif math.log(high / x[index]) <= tolerance:
+            side, bound, past = "upper", high, high * BEYOND_BOUND_FACTOR
+        else:
+            continue
+        hit: dict[str, Any] = {"side": side, "bound": bound, "value": float(x[index])}
+        hit["why"] = BOUND_REASONS[(name, side)]
+        hit["at_knee"] = at_knee
+        if name in TUNED_FREQUENCIES and past >= problem.frequency_cap_rad_s:
+            past = 0.999 * problem.frequency_cap_rad_s  # the discretised filter's limit (a tenth of Nyquist)
+        if past <= bound and side == "upper":
+            hit["beyond_bound"] = None
+            hit["why"] += (
+                f" The bound is at the limit of the filters at sample_period_s {problem.sample_period_s:g} s "
+                f"({problem.frequency_cap_rad_s:.4g} rad/s): a smaller sample period is needed to look beyond."
+            )
+        else:
+            moved = x.copy()
+            moved[index] = past
+            beyond_f, beyond_g = problem.objectives_and_constraints(moved[None, :])
+            hit["beyond_bound"] = {
+                "value": past,
+                **dict(zip(OBJECTIVE_NAMES, map(float, beyond_f[0]), strict=True)),
+                "constraints": dict(zip(CONSTRAINT_NAMES, map(float, beyond_g[0]), strict=True)),
+                "feasible": bool(np.all(beyond_g[0] <= 0.0)),
+            }
+            hit["verdict"] = _bound_verdict(objectives[0], beyond_f[0], beyond_g[0], side)
+        hits[name] = hit
     return hits
 
 
-def tilt_coordination_fraction(params: WashoutParameters) -> float:
+SATURATED_FRACTION = 0.005  # beyond the bound both objectives change by less than this: the bound does not matter
+
+
+def _bound_verdict(at_knee: np.ndarray, beyond: np.ndarray, constraints: np.ndarray, side: str) -> str:
+    """What moving past the bound does: a constraint takes over, both objectives improve (widen it), they
+    saturate (the optimum is the limit 0 or ∞), or one improves as the other worsens (a trade)."""
+    if np.any(constraints > 0.0):
+        broken = ", ".join(name for name, value in zip(CONSTRAINT_NAMES, constraints, strict=True) if value > 0.0)
+        return f"infeasible beyond the bound ({broken}): that constraint, not the bound, limits the optimum"
+    change = (beyond - at_knee) / np.abs(at_knee)
+    if np.all(np.abs(change) < SATURATED_FRACTION):
+        limit = "∞" if side == "upper" else "0"
+        return (
+            f"saturated: beyond the bound both objectives change by less than {100 * SATURATED_FRACTION:g} % "
+            f"({100 * change[0]:+.2f} %, {100 * change[1]:+.2f} %); the optimum is the limit {limit}, where the "
+            "channel no longer acts, so no finite bound keeps it inside"
+        )
+    if np.all(change < 0.0):
+        return (
+            f"both objectives improve beyond the bound ({100 * change[0]:+.2f} %, {100 * change[1]:+.2f} %): widen it"
+        )
+    return (
+        f"a trade beyond the bound ({100 * change[0]:+.2f} %, {100 * change[1]:+.2f} %): the knee of a wider "
+        "front may lie beyond it"
+    )
+
+
+def tilt_coordination_fraction(params: WashoutParameters, sample_period_s: float = TILT_PROBE_SAMPLE_PERIOD_S) -> float:
     """Tilt reached at the end of the paper's sustained step (0.2 g along y, held 10 s), over asin(0.2)."""
-    dt = TILT_PROBE_SAMPLE_PERIOD_S
+    dt = sample_period_s
     force = np.zeros((round(TILT_PROBE_HOLD_S / dt), 3))
     force[:, 1] = TILT_PROBE_FORCE_G * GRAVITY_M_S2
     signals = run_washout(design(params, dt), force.T, np.zeros_like(force).T)
@@ -292,7 +396,7 @@ class TuningResult:
     improves_on_baseline: bool  # the compromise is better than the baseline in both objectives
     optimized_within_stroke: bool  # full twin IK of the compromise: in stroke, every rod reaches its rail
     optimized_reachable: bool  # ... and within every other IK limit too (joint cones, conditioning)
-    bounds_hit: dict[str, str]  # tuned variables of the compromise that sit on a bound: widen it
+    bounds_hit: dict[str, dict[str, Any]]  # tuned variables of the compromise on a bound, and why (`bounds_hit`)
     tilt_coordination_fraction: float  # sustained-step tilt over asin(f/g) (`tilt_coordination_fraction`)
     pareto_parameters: list[WashoutParameters]
     pareto_objectives: np.ndarray  # (M, 2)
@@ -388,7 +492,7 @@ def tune(
         optimized_within_stroke=in_stroke,
         optimized_reachable=reachable,
         bounds_hit=bounds_hit(problem, optimized),
-        tilt_coordination_fraction=tilt_coordination_fraction(optimized),
+        tilt_coordination_fraction=tilt_coordination_fraction(optimized, problem._probe_period_s),
         pareto_parameters=problem.parameters(front_x),
         pareto_objectives=front_f,
         wall_s=wall_s,

@@ -265,7 +265,12 @@ def register(app: typer.Typer) -> None:
                 f"within stroke (full IK): {d['optimized_within_stroke']}; "
                 f"every IK limit: {d['optimized_reachable']}; {d['wall_s']:.1f} s"
             )
-            bounds = ", ".join(f"{name} on its {side} bound" for name, side in d["bounds_hit"].items()) or "none"
+            bounds = (
+                ", ".join(
+                    f"{name} on its {hit['side']} bound {hit['bound']:g}" for name, hit in d["bounds_hit"].items()
+                )
+                or "none"
+            )
             console.print(f"bounds hit: {bounds}")
             state = "OFF" if d["tilt_coordination_off"] else "on"
             console.print(

@@ -100,8 +100,31 @@ def test_an_optimum_on_a_bound_is_reported() -> None:
     problem = WashoutTuningProblem(bounds=original, tuning_input="paper-square-wave")
     on_bounds = problem.parameters(np.array([2.7, 0.02, 0.05]))[0]
     hits = bounds_hit(problem, on_bounds)
-    assert hits == {"translational_first_order_break_rad_s": "lower", "tilt_break_rad_s": "lower"}
+    assert {name: hit["side"] for name, hit in hits.items()} == {
+        "translational_first_order_break_rad_s": "lower",
+        "tilt_break_rad_s": "lower",
+    }
+    tilt = hits["tilt_break_rad_s"]
+    assert tilt["bound"] == 0.05 and tilt["value"] == 0.05 and "tilt coordination" in tilt["why"]
+    # Past the bound (ω_h halved) tilt coordination is even further off: its constraint says why it binds.
+    assert tilt["beyond_bound"]["value"] == 0.025
+    assert tilt["beyond_bound"]["constraints"]["tilt_coordination_shortfall"] > 0.0
+    assert tilt["verdict"].startswith("infeasible") and "tilt_coordination_shortfall" in tilt["verdict"]
     assert bounds_hit(problem, problem.parameters(np.array([2.0, 0.5, 0.4]))[0]) == {}
+
+
+def test_a_translational_break_on_its_upper_bound_is_reported_as_saturated() -> None:
+    """Issue 14 §4, measured: on the suite the knee's ω_a′ sits on its upper bound however wide (5, then 60
+    rad/s at 200 Hz): a higher break washes translation out sooner and both objectives keep (barely)
+    improving, so the optimum is ω_a′ → ∞, translation off. The report says so with the figures."""
+    from core.tuning import bounds_hit
+
+    wide = WashoutTuningProblem(bounds={"translational_first_order_break_rad_s": (0.001, 60.0)}, sample_period_s=0.005)
+    hit = bounds_hit(wide, wide.parameters(np.array([38.6, 60.0, 0.48]))[0])["translational_first_order_break_rad_s"]
+    assert hit["side"] == "upper" and hit["bound"] == 60.0 and hit["beyond_bound"]["feasible"]
+    assert hit["beyond_bound"]["value"] == pytest.approx(0.999 * wide.frequency_cap_rad_s)
+    assert hit["verdict"].startswith("saturated") and "∞" in hit["verdict"]
+    assert "washes the translation out sooner" in hit["why"]
 
 
 def test_tilt_coordination_switched_off_is_flagged() -> None:
@@ -140,3 +163,24 @@ def test_the_default_input_is_the_scenario_suite() -> None:
     assert np.any(rates != 0.0)  # the perturbation pulses tilt too
     lateral_step = np.isclose(force[:, 1], 0.2 * 9.80665)
     assert lateral_step.sum() * 0.02 == pytest.approx(10.0, abs=0.05)  # the paper's §5 step is in it
+
+
+def test_a_bound_the_discretised_filters_cannot_reach_is_refused_before_the_search() -> None:
+    """ω_a and ω_a′ sat on their upper bounds "even at 15 rad/s": at the tuning's 50 Hz the filters are
+    defined only below a tenth of Nyquist (15.7 rad/s), so a wider bound must be refused up front, naming
+    the bound and the limit, and a finer sample period must let the search (tilt probe included) go past."""
+    with pytest.raises(ParameterError, match=r"bounds\.translational_break_rad_s") as refused:
+        WashoutTuningProblem(bounds={"translational_break_rad_s": (0.05, 20.0)})
+    assert "15.71 rad/s" in refused.value.limit and "sample_period_s" in refused.value.limit
+    fine = WashoutTuningProblem(bounds={"translational_break_rad_s": (0.05, 40.0)}, sample_period_s=0.005)
+    objectives, constraints = fine.objectives_and_constraints(np.array([[40.0 * 0.995, 1.0, 0.5]]))
+    assert np.all(np.isfinite(objectives)) and np.all(np.isfinite(constraints))
+
+
+def test_sitting_on_a_bound_is_judged_in_decades() -> None:
+    """Bounds spanning four decades: 1 % of the linear range (0.5 rad/s) called ω_h = 0.37 "on" its 0.005."""
+    from core.tuning import bounds_hit
+
+    wide = WashoutTuningProblem(bounds={"tilt_break_rad_s": (0.005, 50.0)}, sample_period_s=0.005)
+    assert bounds_hit(wide, wide.parameters(np.array([5.0, 1.0, 0.373]))[0]) == {}
+    assert set(bounds_hit(wide, wide.parameters(np.array([5.0, 1.0, 0.0051]))[0])) == {"tilt_break_rad_s"}
