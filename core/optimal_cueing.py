@@ -12,8 +12,9 @@ the past. The problem, per segment:
                IK's fixed working-mode branch keeps the assembly mode), the collision clearance between
                the twin's parts (`core.clearance`, as the IK reports it; by default the robot's margin plus
                the 20 mm stop margin, what the worker's offline check enforces); slider velocity and
-               acceleration; the rotation the cue does not ask for below the canal perception threshold (|ω_platform − ω_cue| ≤ 3 °/s roll,
-               3.6 °/s pitch by default); start and end at neutral, at rest.
+               acceleration; the rotation the cue does not ask for below the canal perception threshold
+               (|ω_platform − ω_cue| ≤ 3 °/s roll, 3.6 °/s pitch by default); start and end at neutral,
+               at rest.
 
 Errors are perceived through the paper's otolith and canal models (`core.vestibular`), discretised at the
 knot period and carried as state variables, so the QP stays sparse. The specific force is the one at
