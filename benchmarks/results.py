@@ -33,5 +33,6 @@ def record(name: str, figures: dict[str, Any], *, path: Path = RESULTS_PATH) -> 
         f"```json\n{json.dumps(figures, indent=2, default=str)}\n```\n"
     )
     pattern = re.compile(rf"^## {re.escape(name)}\n.*?(?=^## |\Z)", re.S | re.M)
-    text = pattern.sub(section + "\n", text) if pattern.search(text) else text.rstrip() + "\n\n" + section
+    # A function, not a template: the figures' JSON holds backslashes ("\u2013"), not regex escapes.
+    text = pattern.sub(lambda _: section + "\n", text) if pattern.search(text) else text.rstrip() + "\n\n" + section
     path.write_text(text)
