@@ -56,6 +56,12 @@ function setUser(next) {
 engineeringSwitch.checked = engineeringOn();
 document.body.classList.toggle("engineering", engineeringSwitch.checked);
 engineeringSwitch.addEventListener("change", () => setEngineering(engineeringSwitch.checked));
+// The switch belongs to this browser (its tabs share it, and the 3D view's panel follows it per login): a change
+// in another tab shows here too; that tab has told the view already.
+window.addEventListener("storage", () => {
+  engineeringSwitch.checked = engineeringOn();
+  document.body.classList.toggle("engineering", engineeringSwitch.checked);
+});
 logout.addEventListener("click", async () => {
   await post("/auth/logout").catch(() => null);
   setUser(null);
