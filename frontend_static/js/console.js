@@ -135,6 +135,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
 
   function plot(t, s, estimator) {
+    chartsHost.dataset.plotted = String(Number(chartsHost.dataset.plotted || 0) + 1); // samples drawn since the last reset
     const pose = s.stance_pose;
     const delivered = platformSpecificForce(pose.slice(3), estimator.update(t, pose.slice(0, 3)));
     const cue = s.cue_specific_force_m_s2;
@@ -146,6 +147,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
   function resetCharts(title) {
     Object.values(charts).forEach((chart) => chart.reset());
+    chartsHost.dataset.plotted = "0";
     chartsTitle.textContent = title;
     chartsHost.dataset.source = replaySeries ? `replay-${replaySeries.run_id}` : "live";
   }

@@ -87,17 +87,25 @@ def test_estop_whole_and_first_on_every_page(console: Any, clinic: dict[str, Any
 # --- defect 2: faults, falls and watchdog stops in sight; a restart after a fall needs an acknowledgement -------
 
 
-def test_watchdog_stop_shows_as_a_fault_with_reason_and_next_step(console: Any) -> None:
+# The stops of defect 2 (a watchdog stop, a detected fall): the top bar's status, a banner's name and plain reason.
+ABNORMAL_STOPS = [("watchdog", "watchdog", "lost contact"), ("fall", "fall", "a fall was detected")]
+
+
+@pytest.mark.parametrize(("stop_reason", "named", "reason"), ABNORMAL_STOPS, ids=[s[0] for s in ABNORMAL_STOPS])
+def test_watchdog_stop_shows_as_a_fault_with_reason_and_next_step(
+    console: Any, stop_reason: str, named: str, reason: str
+) -> None:
     session = console()
     page = session.login()
-    stopped_by_watchdog = {"state": "stopped", "stop_reason": "watchdog", "estop_latched": False, "hal_state": "ready"}
-    page.route("**/api/v1/robot/state", lambda route: route.fulfill(json=stopped_by_watchdog))
+    stopped = {"state": "stopped", "stop_reason": stop_reason, "estop_latched": False, "hal_state": "ready"}
+    page.route("**/api/v1/robot/state", lambda route: route.fulfill(json=stopped))
     status = page.locator("#robot-status")
     expect(status).to_have_class(re.compile(r"\bbad\b"), timeout=10_000)
     expect(status).not_to_have_class(re.compile(r"\bok\b"))
-    alert = page.locator(".banner.error, .banner.fall").filter(has_text="watchdog")
+    expect(status).to_contain_text(named.upper())  # not a calm "Robot: STOPPED"
+    alert = page.locator(".banner.error, .banner.fall").filter(has_text=named)
     expect(alert).to_be_visible()
-    expect(alert).to_contain_text("lost contact")  # the plain reason
+    expect(alert).to_contain_text(reason)  # the plain reason
     expect(alert).to_contain_text("Next step")
     # Back to a normal idle robot: the alert goes away and the status is calm again.
     page.unroute("**/api/v1/robot/state")
@@ -300,6 +308,12 @@ def test_refused_prescription_warns_before_saving(console: Any, clinic: dict[str
     dialog = page.locator("dialog[open]")
     expect(dialog).to_be_visible()
     expect(dialog).to_contain_text("refuse")
+    dialog.get_by_role("button", name="Cancel").click()  # the warning is a real choice: cancel saves nothing
+    expect(page.locator("dialog[open]")).to_have_count(0)
+    expect(page.get_by_role("heading", name="New prescription")).to_be_visible()
+    saved = httpx.get(f"{clinic['api']}/prescriptions", params={"patient_id": clinic["patient"]["id"]},
+                      headers={"Authorization": f"Bearer {clinic['admin_token']}"}).json()  # fmt: skip
+    assert "Too wide" not in [p["name"] for p in saved], saved
 
 
 # --- defect 8: the clinician's language ------------------------------------------------------------------------

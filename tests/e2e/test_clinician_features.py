@@ -4,6 +4,7 @@ viser's developer panel and with labels and camera presets, and the PDF report f
 
 from __future__ import annotations
 
+import datetime as dt
 import io
 import re
 import time
@@ -238,6 +239,29 @@ def test_booking_conflicts_are_quoted_in_local_time(console: Any, clinic: dict[s
     berlin = taken.astimezone(ZoneInfo("Europe/Berlin")).strftime("%H:%M")
     if berlin != local.strftime("%H:%M"):
         expect(message).not_to_contain_text(berlin)  # not the browser's clock
+
+
+def test_dates_and_times_are_the_clinics_clock_on_every_page(console: Any, clinic: dict[str, Any]) -> None:
+    """The week shows the clinic's wall time; the history, the session console and the patient's bookings
+    show the same booking at the same time, not at the browser's (a laptop set to another zone)."""
+    from zoneinfo import ZoneInfo
+
+    session = console(timezone="America/New_York")
+    page = session.login()
+    taken = dt.datetime.fromisoformat(clinic["booking"]["start"])
+    wall = taken.astimezone(ZoneInfo(clinic["booking"]["timezone"])).strftime("%I:%M %p")  # as en-US shows it
+    browser = taken.astimezone(ZoneInfo("America/New_York")).strftime("%I:%M %p")
+    assert wall != browser, "the test needs a clinic outside New York's zone"
+    booked_row = page.get_by_role("row").filter(has=page.locator(f'a[href="#/session/{clinic["booking"]["id"]}"]'))
+    pages = {
+        "history": ("#/history", booked_row),
+        "session console": (f"#/session/{clinic['booking']['id']}", page.locator("#main")),  # "Booked: ..."
+        "patient profile": (f"#/patients/{clinic['patient']['id']}", booked_row),
+    }
+    for where, (route, shown) in pages.items():
+        session.go(route)
+        expect(shown, where).to_contain_text(wall)
+        expect(shown, where).not_to_contain_text(browser)
 
 
 def test_soap_notes_are_kept_per_run(console: Any, clinic: dict[str, Any]) -> None:
