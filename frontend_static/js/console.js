@@ -2,7 +2,7 @@
 // live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
 import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
-import { CLINICAL_EVENTS, OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
+import { CLINICAL_EVENTS, OUTCOME_WORDS, clinicClock, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, engineeringOn, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
@@ -258,7 +258,7 @@ export async function sessionPage(main, sessionId, cleanup) {
       return h(`tr${CLINICAL_EVENTS.has(e.kind) ? "" : ".engineering-only"}`, { dataset: { kind: e.kind } },
         h("td", {}, h("span.event-kind", {}, eventTitle(e))),
         h("td.num", {}, into === null ? "—" : fmt(into, "s", 1)),
-        h("td", {}, new Date(e.utc).toLocaleTimeString()),
+        h("td", {}, clinicClock(new Date(e.utc))),
         h("td", {}, detailWords({ ...(e.detector && e.detector !== "console" ? { detector: e.detector } : {}), ...e.details }) || "—",
           h("details.raw", {}, h("summary", {}, "raw details"), h("pre", {}, JSON.stringify({ ...e, details: e.details }, null, 1)))));
     }));
@@ -272,7 +272,7 @@ export async function sessionPage(main, sessionId, cleanup) {
       try {
         await put(`/runs/${run.id}/notes`, Object.fromEntries(Object.entries(areas).map(([name, [, area]]) => [name, area.value])));
         clearErrors(`notes-${run.id}`);
-        status.textContent = `Notes saved at ${new Date().toLocaleTimeString()}.`;
+        status.textContent = `Notes saved at ${clinicClock(new Date())}.`;
       } catch (error) { showError(error, `notes-${run.id}`); }
     } }, Object.values(areas).map(([label, area]) => h("label", {}, label, area)),
     h("div.row", {}, h("button.secondary", { type: "submit" }, `Save notes of run ${run.id}`), status));

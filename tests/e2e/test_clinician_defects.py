@@ -166,6 +166,96 @@ def test_restart_after_a_fall_needs_an_acknowledgement(console: Any, clinic: dic
     assert not session.errors, session.errors
 
 
+# --- defect 3: the live fall banner gives the time into the run, not the worker's uptime -----------------------
+
+
+def _seed_running_run(database_url: str, booking: dict[str, Any], start_tick_time_s: float) -> int:
+    """A run in progress (as the recorder writes it at a start), so the session console follows it live."""
+    from sqlalchemy import select
+
+    from server.db import Database, create_database_engine, load_models
+    from server.prescriptions.models import PrescriptionVersion
+    from server.sessions.models import SessionEvent, SessionRun
+
+    load_models()
+    engine = create_database_engine(database_url)
+    try:
+        with Database(engine).session() as session:
+            version = session.scalars(select(PrescriptionVersion.id).where(
+                PrescriptionVersion.prescription_id == booking["prescription_id"])).first()  # fmt: skip
+            run = SessionRun(scheduled_session_id=booking["id"], prescription_version_id=version,
+                             robot=booking["robot"], state="running")  # fmt: skip
+            session.add(run)
+            session.flush()
+            session.add(SessionEvent(run_id=run.id, kind="start", tick=0, tick_time_s=start_tick_time_s,
+                                     detector="console", details={}))  # fmt: skip
+            session.commit()
+            return int(run.id)
+    finally:
+        engine.dispose()
+
+
+def _end_run(database_url: str, run_id: int) -> None:
+    from server.db import Database, create_database_engine, load_models
+    from server.sessions.models import SessionRun
+
+    load_models()
+    engine = create_database_engine(database_url)
+    try:
+        with Database(engine).session() as session:
+            run = session.get(SessionRun, run_id)
+            run.state, run.outcome, run.ended_at = "ended", "fall", dt.datetime.now(dt.UTC)
+            session.commit()
+    finally:
+        engine.dispose()
+
+
+def test_the_live_fall_banner_says_the_time_into_the_run(
+    console: Any, clinic: dict[str, Any], console_service: dict[str, Any]
+) -> None:
+    """A fall event arrives with the live telemetry 1500.0 s into the worker's life, in a run that started at
+    1475.0 s on the same clock: the banner says 25.0 s into the run, not 1500 s."""
+    import json
+
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    start = dt.datetime.fromisoformat(clinic["booking"]["start"]) + dt.timedelta(hours=3)
+    booking = httpx.post(f"{clinic['api']}/sessions", headers=headers, json={
+        "patient_id": clinic["patient"]["id"], "prescription_id": clinic["prescription"]["id"],
+        "robot": "twin-banner", "start": start.isoformat(), "duration_s": 1800,
+    }).json()[0]  # fmt: skip
+    run_id = _seed_running_run(str(console_service["database_url"]), booking, start_tick_time_s=1475.0)
+    try:
+        session = console()
+        page = session.login()
+
+        armed: list[bool] = []  # set once the page follows the run: the next frame brings the fall
+        injected: list[bool] = []
+
+        def relay(browser_socket: Any) -> None:  # the real telemetry, with one fall event added
+            server = browser_socket.connect_to_server()
+
+            def to_browser(message: str | bytes) -> None:
+                frame = json.loads(message)
+                if armed and frame.get("state") and not injected:
+                    injected.append(True)
+                    frame["events"] = [{"kind": "fall", "tick_time_s": 1500.0, "detector": "harness_load",
+                                        "details": {"harness_load_n": 412.0}}]  # fmt: skip
+                browser_socket.send(json.dumps(frame))
+
+            server.on_message(to_browser)
+
+        page.route_web_socket(re.compile(r"/telemetry$"), relay)
+        session.go(f"#/session/{booking['id']}")
+        expect(page.locator("#stop-button")).to_be_enabled(timeout=20_000)  # the run is followed live
+        page.wait_for_timeout(1000)  # its events (the start) load with it
+        armed.append(True)
+        fall = page.locator(".banner.fall").filter(has_text="FALL DETECTED")
+        expect(fall).to_contain_text("25.0 s into the run", timeout=20_000)
+        expect(fall).not_to_contain_text("1500")
+    finally:
+        _end_run(str(console_service["database_url"]), run_id)
+
+
 # --- defect 9: broken and stale UI -------------------------------------------------------------------------------
 
 
