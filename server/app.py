@@ -186,6 +186,7 @@ def _api_router() -> APIRouter:
             "robot": daemon,
             "database": {"writable": refusal is None, "reason": refusal},
             "web_pid": os.getpid(),  # which of the console's web processes (`serve --workers N`) answered
+            "clinic_timezone": request.app.state.settings.timezone,  # the console shows every time in it
         }
 
     for router in (

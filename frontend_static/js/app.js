@@ -4,7 +4,7 @@ import { adminPage } from "./admin.js";
 import { sessionPage } from "./console.js";
 import { protocolsPage } from "./protocols.js";
 import { editPatientPage, historyPage, loginPage, newPatientPage, patientPage, patientsPage, prescriptionPage, schedulePage } from "./pages.js";
-import { describeRobot } from "./language.js";
+import { clinicClock, describeRobot, setClinicZone } from "./language.js";
 import { banner, clear, clearBanner, clearErrors, engineeringOn, errorText, h, setEngineering } from "./ui.js";
 
 // The software emergency stop: ONE request, no confirmation, from every page; the key is Escape,
@@ -17,7 +17,7 @@ async function emergencyStop() {
   try {
     const response = await fetch("/api/v1/estop", { method: "POST", credentials: "same-origin", headers: { "X-Requested-With": "ssp-rehab" } });
     if (response.ok) {
-      banner("error", `EMERGENCY STOP sent at ${new Date().toLocaleTimeString()}. The robot is stopped; reset it from the session console once safe.`, { key: "estop", sticky: true });
+      banner("error", `EMERGENCY STOP sent at ${clinicClock(new Date())}. The robot is stopped; reset it from the session console once safe.`, { key: "estop", sticky: true });
     } else if (response.status === 401) {
       banner("error", "Not logged in: the software emergency stop needs a login. Use the robot's red hardware stop button.", { key: "estop", sticky: true });
     } else {
@@ -56,6 +56,12 @@ function setUser(next) {
 engineeringSwitch.checked = engineeringOn();
 document.body.classList.toggle("engineering", engineeringSwitch.checked);
 engineeringSwitch.addEventListener("change", () => setEngineering(engineeringSwitch.checked));
+// The switch belongs to this browser (its tabs share it, and the 3D view's panel follows it per login): a change
+// in another tab shows here too; that tab has told the view already.
+window.addEventListener("storage", () => {
+  engineeringSwitch.checked = engineeringOn();
+  document.body.classList.toggle("engineering", engineeringSwitch.checked);
+});
 logout.addEventListener("click", async () => {
   await post("/auth/logout").catch(() => null);
   setUser(null);
@@ -134,8 +140,11 @@ const ROUTES = [
   [/^#\/protocols$/, (m, params) => protocolsPage(main, params)],
 ];
 let cleanup = [];
+// The clinic's zone, for every date and time shown (public, like the rest of GET /health).
+const clinicZoneKnown = get("/health").then((health) => setClinicZone(health.clinic_timezone)).catch(() => null);
 
 async function route() {
+  await clinicZoneKnown;
   cleanup.forEach((fn) => fn());
   cleanup = [];
   // A dialog belongs to the page that opened it; form and command errors too.

@@ -1,4 +1,5 @@
 // uPlot charts (vendor/uplot-1.6.32): static plots (preview, trends) and rolling live plots.
+import { clinicDateTime, clinicZoneName } from "./language.js";
 import { h } from "./ui.js";
 
 export const PALETTE = ["#0b4fa8", "#d1495b", "#00798c", "#edae49", "#6a4c93", "#30638e",
@@ -11,6 +12,8 @@ function chartWidth(host) { return Math.max(320, (host.clientWidth || 600) - 12)
 function options(title, unit, series, { height = 240, xLabel = "time (s)", yRange, ySoft = 1, xTime = false } = {}) {
   return {
     title: `${title} (${unit})`,
+    // Date axes in the clinic's zone (as every date of the console), not the browser's.
+    tzDate: (ts) => (clinicZoneName() ? uPlot.tzDate(new Date(ts * 1000), clinicZoneName()) : new Date(ts * 1000)),
     width: 600,
     height,
     // A flat signal keeps a readable axis (±ySoft) instead of uPlot's default 0–100.
@@ -22,7 +25,7 @@ function options(title, unit, series, { height = 240, xLabel = "time (s)", yRang
     ],
     legend: { live: true },
     series: [
-      xTime ? { label: "date", value: (u, v) => (v == null ? "—" : new Date(v * 1000).toLocaleString()) }
+      xTime ? { label: "date", value: (u, v) => (v == null ? "—" : clinicDateTime(new Date(v * 1000))) }
         : { label: "t", value: (u, v) => (v == null ? "—" : `${v.toFixed(2)} s`) },
       ...series.map((s, i) => ({
         label: s.label,

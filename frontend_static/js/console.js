@@ -2,7 +2,7 @@
 // live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
 import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
-import { CLINICAL_EVENTS, OUTCOME_WORDS, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
+import { CLINICAL_EVENTS, OUTCOME_WORDS, clinicClock, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, engineeringOn, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
@@ -88,7 +88,7 @@ export async function sessionPage(main, sessionId, cleanup) {
     chartsTitle,
     chartsHost,
     h("h2", {}, "Runs, events, notes and exports"),
-    h("button.secondary", { type: "button", onclick: () => post("/viz/live").then(() => { replaySeries = null; resetCharts("Live signals"); }).catch(showError) }, "3D view: back to live"),
+    h("button.secondary", { type: "button", onclick: () => post("/viz/live").then(() => { replaySeries = null; resetCharts(liveTitle()); }).catch(showError) }, "3D view: back to live"),
     runsHost);
 
   // --- live charts -----------------------------------------------------------------------------
@@ -135,6 +135,8 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
 
   function plot(t, s, estimator) {
+    chartsHost.dataset.plotted = String(Number(chartsHost.dataset.plotted || 0) + 1); // samples drawn since the last reset
+    chartsHost.dataset.lastTime = t.toFixed(1);
     const pose = s.stance_pose;
     const delivered = platformSpecificForce(pose.slice(3), estimator.update(t, pose.slice(0, 3)));
     const cue = s.cue_specific_force_m_s2;
@@ -146,6 +148,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
   function resetCharts(title) {
     Object.values(charts).forEach((chart) => chart.reset());
+    chartsHost.dataset.plotted = "0";
     chartsTitle.textContent = title;
     chartsHost.dataset.source = replaySeries ? `replay-${replaySeries.run_id}` : "live";
   }
@@ -154,7 +157,7 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (!replaySeries) return;
     if (status.mode !== "replay" || status.replay_run_id !== replaySeries.run_id) {
       replaySeries = null;
-      resetCharts("Live signals");
+      resetCharts(liveTitle());
       return;
     }
     const { time_s: times } = replaySeries;
@@ -176,9 +179,9 @@ export async function sessionPage(main, sessionId, cleanup) {
     framesThisSecond += 1;
     chartsHost.dataset.samples = String(Number(chartsHost.dataset.samples || 0) + 1);
     clear(supervisorState).append(badge(s.state), h("span.engineering-only", {}, ` drives ${s.hal_state}`));
-    if (chartOrigin === null) chartOrigin = s.time_s;
-    // Seconds since this page opened, not the worker's uptime; a replay owns the charts while it plays.
-    if (!replaySeries) plot(s.time_s - chartOrigin, s, acceleration);
+    // A replay owns the charts while it plays.
+    const t = liveChartTime(s);
+    if (!replaySeries) plot(t, s, acceleration);
     for (const event of frame.events || []) {
       if (event.kind === "fall") {
         const into = runStart && Number.isFinite(event.tick_time_s) ? ` ${fmt(event.tick_time_s - runStart.tick_time_s, "s", 1)} into the run` : "";
@@ -190,6 +193,19 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
   let lastRender = 0;
   let chartOrigin = null;
+  let chartRunOrigin = null;
+  const liveTitle = () => (chartRunOrigin === null ? "Live signals (time since this page opened)" : "Live signals (time into the run)");
+  // The live charts' time: into the run (the worker clock minus the run's start event, the clock of the events
+  // and banners), else since this page opened; never the worker's uptime. A new origin starts the charts anew.
+  function liveChartTime(s) {
+    const origin = runStart && Number.isFinite(runStart.tick_time_s) ? runStart.tick_time_s : null;
+    if (chartOrigin === null || origin !== chartRunOrigin) {
+      chartRunOrigin = origin;
+      chartOrigin = origin ?? s.time_s;
+      if (!replaySeries) resetCharts(liveTitle());
+    }
+    return s.time_s - chartOrigin;
+  }
   let replaySeries = null; // the replayed run's signals (GET /viz/runs/{id}/series), shown instead of live ones
   let replayShown = 0;
   let replayAcceleration = null;
@@ -256,7 +272,7 @@ export async function sessionPage(main, sessionId, cleanup) {
       return h(`tr${CLINICAL_EVENTS.has(e.kind) ? "" : ".engineering-only"}`, { dataset: { kind: e.kind } },
         h("td", {}, h("span.event-kind", {}, eventTitle(e))),
         h("td.num", {}, into === null ? "—" : fmt(into, "s", 1)),
-        h("td", {}, new Date(e.utc).toLocaleTimeString()),
+        h("td", {}, clinicClock(new Date(e.utc))),
         h("td", {}, detailWords({ ...(e.detector && e.detector !== "console" ? { detector: e.detector } : {}), ...e.details }) || "—",
           h("details.raw", {}, h("summary", {}, "raw details"), h("pre", {}, JSON.stringify({ ...e, details: e.details }, null, 1)))));
     }));
@@ -270,7 +286,7 @@ export async function sessionPage(main, sessionId, cleanup) {
       try {
         await put(`/runs/${run.id}/notes`, Object.fromEntries(Object.entries(areas).map(([name, [, area]]) => [name, area.value])));
         clearErrors(`notes-${run.id}`);
-        status.textContent = `Notes saved at ${new Date().toLocaleTimeString()}.`;
+        status.textContent = `Notes saved at ${clinicClock(new Date())}.`;
       } catch (error) { showError(error, `notes-${run.id}`); }
     } }, Object.values(areas).map(([label, area]) => h("label", {}, label, area)),
     h("div.row", {}, h("button.secondary", { type: "submit" }, `Save notes of run ${run.id}`), status));

@@ -194,12 +194,22 @@ const CONFLICT_PATTERNS = [
   [/already acknowledged/i, "This stop has already been acknowledged."],
   [/ended with an? ([\w ]+) that is not acknowledged/i, (m) => `The robot's last run ended with a ${m[1]}: acknowledge it in the session console before a new run.`],
 ];
+// --- the clinic's clock: dates and times show in the clinic's zone (`clinic_timezone` of GET /health), as the
+// week view does, whatever zone the browser's computer is set to; until it is known, the browser's own.
+let clinicZone;
+export function setClinicZone(zone) {
+  try { new Intl.DateTimeFormat(undefined, { timeZone: zone }); clinicZone = zone; } catch (_) { clinicZone = undefined; }
+}
+export const clinicZoneName = () => clinicZone;
+export const clinicDateTime = (when, options = {}) => when.toLocaleString(undefined, { ...options, timeZone: clinicZone });
+export const clinicClock = (when, options = {}) => when.toLocaleTimeString(undefined, { ...options, timeZone: clinicZone });
+
 // Times the API quotes in UTC — ISO 8601 with an offset, or "YYYY-MM-DD HH:MM [to HH:MM] UTC" — in this
-// browser's local time, as the week view shows them.
+// clinic's time, as the week view shows them.
 const UTC_SPAN = /\b(\d{4}-\d{2}-\d{2})[T ](\d{2}:\d{2})(?: to (\d{2}:\d{2}))? UTC\b/g;
 const ISO_TIME = /\b(\d{4}-\d{2}-\d{2})T(\d{2}:\d{2}(?::\d{2}(?:\.\d+)?)?)(Z|[+-]\d{2}:?\d{2})(?![\w:])/g;
-const localDateTime = (when) => when.toLocaleString(undefined, { weekday: "short", day: "numeric", month: "short", hour: "2-digit", minute: "2-digit" });
-const localClock = (when) => when.toLocaleTimeString(undefined, { hour: "2-digit", minute: "2-digit" });
+const localDateTime = (when) => clinicDateTime(when, { weekday: "short", day: "numeric", month: "short", hour: "2-digit", minute: "2-digit" });
+const localClock = (when) => clinicClock(when, { hour: "2-digit", minute: "2-digit" });
 export function localTimes(text) {
   return String(text)
     .replace(UTC_SPAN, (match, day, start, end) => {

@@ -1,5 +1,5 @@
 // DOM helpers, banners, the confirmation dialog and unit formatting shared by every page.
-import { conflictWords, fieldMessage, localTimes } from "./language.js";
+import { clinicClock, clinicDateTime, conflictWords, fieldMessage, localTimes } from "./language.js";
 
 // h("tag.class#id", {attrs}, ...children): a small element builder (text children are escaped by the DOM).
 export function h(spec, attrs = {}, ...children) {
@@ -36,11 +36,10 @@ export function fmt(value, unit, digits = 1) {
 }
 export function fmtDateTime(iso) {
   if (!iso) return "—";
-  const d = new Date(iso);
-  return d.toLocaleString(undefined, { weekday: "short", year: "numeric", month: "short", day: "numeric", hour: "2-digit", minute: "2-digit" });
+  return clinicDateTime(new Date(iso), { weekday: "short", year: "numeric", month: "short", day: "numeric", hour: "2-digit", minute: "2-digit" });
 }
 export function fmtTime(iso) {
-  return new Date(iso).toLocaleTimeString(undefined, { hour: "2-digit", minute: "2-digit" });
+  return clinicClock(new Date(iso), { hour: "2-digit", minute: "2-digit" });
 }
 export function badge(state) { return h(`span.badge.${String(state).replace(/[^a-z_]/gi, "")}`, {}, String(state).replace(/_/g, " ")); }
 

@@ -2,14 +2,18 @@
 and its WebSocket to logged-in users, so nobody watches a patient's session by reaching viser's port.
 
 viser's client derives its WebSocket address from the page address, so the page served at
-`/api/v1/viz/view/` opens `ws(s)://<console>/api/v1/viz/view`, which is relayed here.
+`/api/v1/viz/view/` opens `ws(s)://<console>/api/v1/viz/view`, which is relayed here. The relay names the
+browser to viser (`?viewer=`, from the login that opened the socket), so that viser's panel follows that
+browser's own engineering switch (`POST /viz/controls` from the same login), not another browser's.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 from typing import Any
+from urllib.parse import urlencode
 
 import httpx
 import websockets
@@ -19,9 +23,10 @@ from starlette.concurrency import run_in_threadpool
 from websockets.asyncio.client import connect as upstream_connect
 
 from server.auth.dependencies import auth_state, claims_for_token, current_user, token_from_request, user_for_claims
+from server.auth.security import TokenClaims
 from server.db import Database
 from server.errors import WorkerUnavailableError
-from server.viz.view import LiveView
+from server.viz.view import VIEWER_PARAM, LiveView
 
 VIEW_PATH = "/viz/view"
 # viser's page runs a bundled app from an inline script and web workers; it shows only the scene.
@@ -34,6 +39,12 @@ MAX_MESSAGE_BYTES = 50 * 1024 * 1024  # viser's own limit
 
 router = APIRouter(tags=["3d view"])
 NO_VIEW = "the 3D view is not running (turned off with SSP_REHAB_VIZ_ENABLED=false, or its port was taken)"
+
+
+def viewer_of(claims: TokenClaims) -> str:
+    """The 3D view's name for one browser: its login session (each login on each device is its own; the
+    tabs of one browser share it, as they share the engineering switch), hashed so viser never holds it."""
+    return hashlib.sha256(b"ssp-rehab 3D viewer " + claims.session_id.encode()).hexdigest()[:32]
 
 
 def _view_port(app: Any) -> int | None:
@@ -68,30 +79,30 @@ async def view_page(request: Request, path: str = "") -> Response:
     )
 
 
-def _refusal(database: Database, websocket: WebSocket) -> str | None:
-    """None when the socket belongs to a logged-in, active user; else why not."""
+def _login(database: Database, websocket: WebSocket) -> tuple[str | None, TokenClaims | None]:
+    """(None, the login) when the socket belongs to a logged-in, active user; else (why not, None)."""
     state = auth_state(websocket)
     claims = claims_for_token(token_from_request(websocket, state.cookie_name), state)
     if claims is None:
-        return "not authenticated"
+        return "not authenticated", None
     with database.session() as session:
-        return None if user_for_claims(session, claims) is not None else "login session ended"
+        return (None, claims) if user_for_claims(session, claims) is not None else ("login session ended", None)
 
 
 @router.websocket(VIEW_PATH)
 async def view_socket(websocket: WebSocket) -> None:
     """viser's WebSocket, relayed both ways once the user is known to be logged in."""
-    refusal = await run_in_threadpool(_refusal, websocket.app.state.database, websocket)
+    refusal, claims = await run_in_threadpool(_login, websocket.app.state.database, websocket)
     port = _view_port(websocket.app)
     if refusal is None and port is None:
         refusal = NO_VIEW
-    if refusal is not None or port is None:
+    if refusal is not None or port is None or claims is None:
         await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=refusal)
         return
     offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
     try:
         upstream = await upstream_connect(
-            f"ws://127.0.0.1:{port}",
+            f"ws://127.0.0.1:{port}/?{urlencode({VIEWER_PARAM: viewer_of(claims)})}",
             subprotocols=offered,  # viser checks its client's version in the subprotocol
             max_size=MAX_MESSAGE_BYTES,
             compression=None,

@@ -11,7 +11,8 @@ from sqlalchemy import select
 
 from server.api_types import MAX_ID, IdPath, RequestModel
 from server.audit import service as audit
-from server.auth.dependencies import CurrentUser, current_user
+from server.auth.dependencies import CurrentUser, authenticated_claims, current_user
+from server.auth.security import TokenClaims
 from server.db import SessionDep
 from server.errors import ConflictError, WorkerUnavailableError
 from server.jsonable import to_jsonable
@@ -21,6 +22,7 @@ from server.scheduling.models import ScheduledSession
 from server.sessions.logs import telemetry_columns
 from server.sessions.models import SessionEvent
 from server.sessions.service import get_run
+from server.viz.proxy import viewer_of
 from server.viz.view import LiveView, ReplayError
 
 # The telemetry fields the console's charts draw (js/console.js), by the same names as in the live frames.
@@ -56,6 +58,14 @@ class FigureRequest(RequestModel):
     model_config = ConfigDict(json_schema_extra={"examples": [{"patient_id": 1}]})
 
 
+def _viewer(claims: Annotated[TokenClaims, Depends(authenticated_claims)]) -> str:
+    return viewer_of(claims)
+
+
+# The browser that asks: its own views of the 3D scene (the relay names them by the same login).
+Viewer = Annotated[str, Depends(_viewer)]
+
+
 def _view(request: Request) -> LiveView:
     view: LiveView | None = getattr(request.app.state, "viz", None)
     if view is None:
@@ -72,16 +82,19 @@ def _patient_of_run(session: Any, run: Any) -> Patient:
 
 
 @router.get("")
-def view_status(request: Request) -> dict[str, Any]:
-    """The view's port (the page builds `http://<this host>:<port>/`), mode (live or replay) and frames shown."""
+def view_status(request: Request, viewer: Viewer) -> dict[str, Any]:
+    """The view's port (the page builds `http://<this host>:<port>/`), mode (live or replay) and frames shown;
+    `controls_visible` is whether viser's panel shows in the asking browser."""
     view: LiveView | None = getattr(request.app.state, "viz", None)
     if view is None:
         return {"available": False, "detail": NO_VIEW}
-    return view.status()
+    return view.status(viewer)
 
 
 @router.post("/replay", responses={503: {"description": "No 3D view"}, 409: {"description": "No telemetry"}})
-def replay_run(data: ReplayRequest, request: Request, session: SessionDep, user: CurrentUser) -> dict[str, Any]:
+def replay_run(
+    data: ReplayRequest, request: Request, session: SessionDep, user: CurrentUser, viewer: Viewer
+) -> dict[str, Any]:
     """Play a recorded run in the 3D view at its recorded speed; `POST /viz/live` returns to the robot."""
     view = _view(request)
     run = get_run(session=session, run_id=data.run_id)
@@ -93,40 +106,43 @@ def replay_run(data: ReplayRequest, request: Request, session: SessionDep, user:
         raise ConflictError(f"session run {run.id} cannot be replayed: {error}", field=error.field) from error
     audit.record(session=session, user_id=user.id, action="replay", resource_type="session_run", resource_id=run.id)
     session.commit()
-    return view.status()
+    return view.status(viewer)
 
 
 @router.post("/live", responses={503: {"description": "No 3D view"}})
-def go_live(request: Request) -> dict[str, Any]:
+def go_live(request: Request, viewer: Viewer) -> dict[str, Any]:
     """Leave replay: the view follows the robot again."""
     view = _view(request)
     view.go_live()
-    return view.status()
+    return view.status(viewer)
 
 
 @router.post("/camera", responses={503: {"description": "No 3D view"}})
-def set_camera(data: CameraRequest, request: Request) -> dict[str, Any]:
+def set_camera(data: CameraRequest, request: Request, viewer: Viewer) -> dict[str, Any]:
     """Look from a preset: front (where the patient faces), left or right side, from above, or the overview."""
     view = _view(request)
     view.set_camera(data.preset)
-    return view.status()
+    return view.status(viewer)
 
 
 @router.post("/controls", responses={503: {"description": "No 3D view"}})
-def set_controls(data: ControlsRequest, request: Request) -> dict[str, Any]:
-    """Expand or minimize viser's control panel in the 3D view (camera presets, viser's developer settings)."""
+def set_controls(data: ControlsRequest, request: Request, viewer: Viewer) -> dict[str, Any]:
+    """Expand or minimize viser's control panel (camera presets, viser's developer settings) in the 3D views
+    of the asking browser only (its login); every other browser keeps its own."""
     view = _view(request)
-    view.set_controls_visible(data.visible)
-    return view.status()
+    view.set_controls_visible(viewer, data.visible)
+    return view.status(viewer)
 
 
 @router.post("/figure", responses={503: {"description": "No 3D view"}})
-def set_figure(data: FigureRequest, request: Request, session: SessionDep, user: CurrentUser) -> dict[str, Any]:
+def set_figure(
+    data: FigureRequest, request: Request, session: SessionDep, user: CurrentUser, viewer: Viewer
+) -> dict[str, Any]:
     """The standing figure takes the patient's height (the view still shows no name or other data)."""
     view = _view(request)
     patient = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
     view.set_figure_height(patient.height_m)
-    return view.status()
+    return view.status(viewer)
 
 
 SERIES_POINTS_MAX = 4000

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import urllib.parse
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -43,6 +44,10 @@ PRESET_WORDS = {
 # console's own status line says how the view runs, so the notice is taken away again.
 SOFTWARE_WEBGL_NOTICE = "webgl-software-rendering"
 NOTICE_REMOVAL_DELAYS_S = (0.5, 2.0, 5.0)  # the browser shows it on mount, before or after connecting
+# The console's relay (proxy.py) names the browser of each viser connection in this query parameter, so that
+# viser's panel follows that browser's own engineering switch.
+VIEWER_PARAM = "viewer"
+VIEWER_MAX_CHARS = 64
 
 
 class ReplayError(ValueError):
@@ -125,7 +130,10 @@ class LiveView:
         self.server: Any = None
         self.scene: TwinScene | None = None
         self.camera_preset = "oblique"
-        self.controls_visible = False
+        # viser's panel per browser: the viewers whose switch is on, and which viser clients each one has open.
+        self._panel_lock = threading.Lock()
+        self._panel_viewers: set[str] = set()
+        self._viewer_of_client: dict[int, str | None] = {}
 
     def start(self) -> None:
         import viser
@@ -147,7 +155,11 @@ class LiveView:
                 button = self.server.gui.add_button(label)
                 button.on_click(lambda _event, preset=preset: self.set_camera(preset))
         self.server.on_client_connect(self._hide_software_webgl_notice)
-        self.set_controls_visible(False)  # viser's panel is an engineering tool: shown with the console's switch
+        # viser's panel is an engineering tool, shown only in the browsers whose switch is on. Each client gets
+        # its own minimize/expand (client scope, one sender, so in order); a server-wide default as well would
+        # race with it on connect (two senders: the later arrival wins in viser's page).
+        self.server.on_client_connect(self._place_panel)
+        self.server.on_client_disconnect(self._forget_client)
         self._thread = threading.Thread(target=self._run, name="viz-feed", daemon=True)
         self._thread.start()
         logger.info("3D view on port %d at %.0f Hz", self.port, self.rate_hz)
@@ -178,14 +190,50 @@ class LiveView:
                 client.camera.look_at = look_at
         self.camera_preset = preset
 
-    def set_controls_visible(self, visible: bool) -> None:
-        """Expands viser's control panel, or minimizes it to its title bar (every open view and later ones)."""
-        panel = self.server.gui.main_panel
+    def set_controls_visible(self, viewer: str, visible: bool) -> None:
+        """Expands viser's control panel, or minimizes it to its title bar, in this viewer's open views and
+        later ones (a viewer is one browser's login: `proxy.viewer_of`); every other browser keeps its own."""
+        with self._panel_lock:
+            if visible:
+                self._panel_viewers.add(viewer)
+            else:
+                self._panel_viewers.discard(viewer)
+            for client_id, client in self.server.get_clients().items():
+                if self._viewer_of_client.get(client_id) == viewer:
+                    self._show_panel(client, visible)
+
+    def controls_visible(self, viewer: str | None) -> bool:
+        with self._panel_lock:
+            return viewer in self._panel_viewers
+
+    @staticmethod
+    def _show_panel(client: Any, visible: bool) -> None:
+        panel = client.gui.main_panel
         if visible:
             panel.expand()
         else:
             panel.minimize()
-        self.controls_visible = visible
+
+    def _place_panel(self, client: Any) -> None:
+        with self._panel_lock:  # held while sending, so that a switch at this moment lands after this
+            viewer = self._viewer_of_client[client.client_id] = self._viewer_of(client)
+            self._show_panel(client, viewer in self._panel_viewers)
+
+    def _forget_client(self, client: Any) -> None:
+        with self._panel_lock:
+            self._viewer_of_client.pop(client.client_id, None)
+
+    def _viewer_of(self, client: Any) -> str | None:
+        """The viewer the relay named in this connection's address (`/?viewer=...`); None: an unknown
+        browser, whose panel stays minimized."""
+        try:  # viser 1.1 keeps the upgrade request of each connection only in its websocket server
+            request = self.server._websock_server._live_connections[client.client_id].request
+            query = urllib.parse.urlsplit(request.path).query
+        except (AttributeError, KeyError):
+            logger.warning("3D view: could not tell which browser viser client %s is", client.client_id)
+            return None
+        viewers = urllib.parse.parse_qs(query).get(VIEWER_PARAM, [])
+        return viewers[0] if len(viewers) == 1 and len(viewers[0]) <= VIEWER_MAX_CHARS else None
 
     def set_figure_height(self, height_m: float) -> bool:
         assert self.scene is not None
@@ -218,7 +266,8 @@ class LiveView:
             self._replay = None
             self._last_shown = None
 
-    def status(self) -> dict[str, Any]:
+    def status(self, viewer: str | None = None) -> dict[str, Any]:
+        """The view's state; `controls_visible` is this viewer's (None: no browser's)."""
         with self._lock:
             replay = self._replay
         scene = self.scene
@@ -231,7 +280,7 @@ class LiveView:
             "last_tick": self.last_tick,
             "robot_connected": self.latest_state is not None,
             "camera_preset": self.camera_preset,
-            "controls_visible": self.controls_visible,
+            "controls_visible": self.controls_visible(viewer),
             "camera_presets": list(CAMERA_PRESETS),
             "figure_height_m": scene.figure_height_m if scene is not None else None,
         }

@@ -87,17 +87,25 @@ def test_estop_whole_and_first_on_every_page(console: Any, clinic: dict[str, Any
 # --- defect 2: faults, falls and watchdog stops in sight; a restart after a fall needs an acknowledgement -------
 
 
-def test_watchdog_stop_shows_as_a_fault_with_reason_and_next_step(console: Any) -> None:
+# The stops of defect 2 (a watchdog stop, a detected fall): the top bar's status, a banner's name and plain reason.
+ABNORMAL_STOPS = [("watchdog", "watchdog", "lost contact"), ("fall", "fall", "a fall was detected")]
+
+
+@pytest.mark.parametrize(("stop_reason", "named", "reason"), ABNORMAL_STOPS, ids=[s[0] for s in ABNORMAL_STOPS])
+def test_watchdog_stop_shows_as_a_fault_with_reason_and_next_step(
+    console: Any, stop_reason: str, named: str, reason: str
+) -> None:
     session = console()
     page = session.login()
-    stopped_by_watchdog = {"state": "stopped", "stop_reason": "watchdog", "estop_latched": False, "hal_state": "ready"}
-    page.route("**/api/v1/robot/state", lambda route: route.fulfill(json=stopped_by_watchdog))
+    stopped = {"state": "stopped", "stop_reason": stop_reason, "estop_latched": False, "hal_state": "ready"}
+    page.route("**/api/v1/robot/state", lambda route: route.fulfill(json=stopped))
     status = page.locator("#robot-status")
     expect(status).to_have_class(re.compile(r"\bbad\b"), timeout=10_000)
     expect(status).not_to_have_class(re.compile(r"\bok\b"))
-    alert = page.locator(".banner.error, .banner.fall").filter(has_text="watchdog")
+    expect(status).to_contain_text(named.upper())  # not a calm "Robot: STOPPED"
+    alert = page.locator(".banner.error, .banner.fall").filter(has_text=named)
     expect(alert).to_be_visible()
-    expect(alert).to_contain_text("lost contact")  # the plain reason
+    expect(alert).to_contain_text(reason)  # the plain reason
     expect(alert).to_contain_text("Next step")
     # Back to a normal idle robot: the alert goes away and the status is calm again.
     page.unroute("**/api/v1/robot/state")
@@ -156,6 +164,100 @@ def test_restart_after_a_fall_needs_an_acknowledgement(console: Any, clinic: dic
     acknowledged = [e for e in events if e["kind"] == "acknowledged"]
     assert len(acknowledged) == 1 and acknowledged[0]["user_id"] is not None, events
     assert not session.errors, session.errors
+
+
+# --- defect 3 / build 2: banners and charts of a live run give the time into the run, not the worker's uptime ----
+
+
+def _seed_running_run(database_url: str, booking: dict[str, Any], start_tick_time_s: float) -> int:
+    """A run in progress (as the recorder writes it at a start), so the session console follows it live."""
+    from sqlalchemy import select
+
+    from server.db import Database, create_database_engine, load_models
+    from server.prescriptions.models import PrescriptionVersion
+    from server.sessions.models import SessionEvent, SessionRun
+
+    load_models()
+    engine = create_database_engine(database_url)
+    try:
+        with Database(engine).session() as session:
+            version = session.scalars(select(PrescriptionVersion.id).where(
+                PrescriptionVersion.prescription_id == booking["prescription_id"])).first()  # fmt: skip
+            run = SessionRun(scheduled_session_id=booking["id"], prescription_version_id=version,
+                             robot=booking["robot"], state="running")  # fmt: skip
+            session.add(run)
+            session.flush()
+            session.add(SessionEvent(run_id=run.id, kind="start", tick=0, tick_time_s=start_tick_time_s,
+                                     detector="console", details={}))  # fmt: skip
+            session.commit()
+            return int(run.id)
+    finally:
+        engine.dispose()
+
+
+def _end_run(database_url: str, run_id: int) -> None:
+    from server.db import Database, create_database_engine, load_models
+    from server.sessions.models import SessionRun
+
+    load_models()
+    engine = create_database_engine(database_url)
+    try:
+        with Database(engine).session() as session:
+            run = session.get(SessionRun, run_id)
+            run.state, run.outcome, run.ended_at = "ended", "fall", dt.datetime.now(dt.UTC)
+            session.commit()
+    finally:
+        engine.dispose()
+
+
+def test_a_live_run_is_timed_from_its_start_in_banners_and_charts(
+    console: Any, clinic: dict[str, Any], console_service: dict[str, Any]
+) -> None:
+    """A run started 100 s ago on the worker's clock: the live charts run from 100 s (time into the run, not
+    since the page opened nor the worker's uptime), and a fall event 25 s after the start reads "25.0 s into
+    the run" in its banner."""
+    import json
+
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    worker_now_s = httpx.get(f"{clinic['api']}/robot/state", headers=headers).json()["time_s"]
+    run_start_s = worker_now_s - 100.0
+    start = dt.datetime.fromisoformat(clinic["booking"]["start"]) + dt.timedelta(hours=3)
+    booking = httpx.post(f"{clinic['api']}/sessions", headers=headers, json={
+        "patient_id": clinic["patient"]["id"], "prescription_id": clinic["prescription"]["id"],
+        "robot": "twin-banner", "start": start.isoformat(), "duration_s": 1800,
+    }).json()[0]  # fmt: skip
+    run_id = _seed_running_run(str(console_service["database_url"]), booking, start_tick_time_s=run_start_s)
+    try:
+        session = console()
+        page = session.login()
+
+        armed: list[bool] = []  # set once the page follows the run: the next frame brings the fall
+        injected: list[bool] = []
+
+        def relay(browser_socket: Any) -> None:  # the real telemetry, with one fall event added
+            server = browser_socket.connect_to_server()
+
+            def to_browser(message: str | bytes) -> None:
+                frame = json.loads(message)
+                if armed and frame.get("state") and not injected:
+                    injected.append(True)
+                    frame["events"] = [{"kind": "fall", "tick_time_s": run_start_s + 25.0, "detector": "harness_load",
+                                        "details": {"harness_load_n": 412.0}}]  # fmt: skip
+                browser_socket.send(json.dumps(frame))
+
+            server.on_message(to_browser)
+
+        page.route_web_socket(re.compile(r"/telemetry$"), relay)
+        session.go(f"#/session/{booking['id']}")
+        expect(page.locator("#stop-button")).to_be_enabled(timeout=20_000)  # the run is followed live
+        expect(page.locator("#charts-title")).to_contain_text("time into the run")
+        charted_s = float(page.locator("#live-charts").get_attribute("data-last-time") or "nan")
+        assert 100.0 <= charted_s < 160.0, f"the live charts are at {charted_s} s, not about 100 s into the run"
+        armed.append(True)
+        fall = page.locator(".banner.fall").filter(has_text="FALL DETECTED")
+        expect(fall).to_contain_text("25.0 s into the run", timeout=20_000)
+    finally:
+        _end_run(str(console_service["database_url"]), run_id)
 
 
 # --- defect 9: broken and stale UI -------------------------------------------------------------------------------
@@ -300,6 +402,12 @@ def test_refused_prescription_warns_before_saving(console: Any, clinic: dict[str
     dialog = page.locator("dialog[open]")
     expect(dialog).to_be_visible()
     expect(dialog).to_contain_text("refuse")
+    dialog.get_by_role("button", name="Cancel").click()  # the warning is a real choice: cancel saves nothing
+    expect(page.locator("dialog[open]")).to_have_count(0)
+    expect(page.get_by_role("heading", name="New prescription")).to_be_visible()
+    saved = httpx.get(f"{clinic['api']}/prescriptions", params={"patient_id": clinic["patient"]["id"]},
+                      headers={"Authorization": f"Bearer {clinic['admin_token']}"}).json()  # fmt: skip
+    assert "Too wide" not in [p["name"] for p in saved], saved
 
 
 # --- defect 8: the clinician's language ------------------------------------------------------------------------

@@ -4,12 +4,12 @@ viser's developer panel and with labels and camera presets, and the PDF report f
 
 from __future__ import annotations
 
+import datetime as dt
 import io
 import re
 import time
 from typing import Any
 
-import httpx
 import pytest
 
 from tests.e2e.conftest import ARTIFACTS, THERAPIST, field_error, fill_patient, turn_engineering_on
@@ -162,19 +162,44 @@ def test_3d_view_shows_presets_without_viser_developer_panel_or_notice(console: 
     page.wait_for_timeout(6000)  # viser shows its notice at load; the view takes it away
     expect(frame.get_by_text("Software WebGL rendering detected")).to_have_count(0)
     page.locator(".camera-presets").get_by_role("button", name="Left side").click()
-    status = _viz_status(clinic)
+    status = _viz_status(clinic, page)
     assert status["camera_preset"] == "left" and status["controls_visible"] is True, status
     assert status["figure_height_m"] == pytest.approx(clinic["patient"]["height_m"]), status
 
 
-def _viz_status(clinic: dict[str, Any]) -> dict[str, Any]:
-    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+def _viz_status(clinic: dict[str, Any], page: Any) -> dict[str, Any]:
+    """`GET /viz` as this browser sees it (its cookie: `controls_visible` is its own switch)."""
     for _ in range(20):
-        status = httpx.get(f"{clinic['api']}/viz", headers=headers, timeout=10).json()
+        status: dict[str, Any] = page.request.get(f"{clinic['api']}/viz").json()
         if status.get("camera_preset") == "left":
             break
         time.sleep(0.25)
     return status
+
+
+def test_the_engineering_switch_of_one_browser_leaves_the_other_browsers_3d_view(
+    console: Any, clinic: dict[str, Any]
+) -> None:
+    """The therapist's tablet turns engineering on: viser's panel opens there, not on the wall screen (the
+    same account, logged in on another device), not even after the wall screen reloads."""
+    tablet, wall = console(user=THERAPIST[:2]), console(user=THERAPIST[:2])
+    frames = {}
+    for name, browser in (("tablet", tablet), ("wall", wall)):
+        browser.login()
+        browser.go(f"#/session/{clinic['booking']['id']}")
+        frames[name] = browser.page.frame_locator("#viz-frame")
+        expect(frames[name].get_by_text("ssp-rehab 3D view")).to_be_visible(timeout=60_000)  # viser's panel bar
+        expect(frames[name].get_by_role("button", name="Front")).to_be_hidden(timeout=20_000)
+    turn_engineering_on(tablet.page)
+    expect(frames["tablet"].get_by_role("button", name="Front")).to_be_visible(timeout=20_000)
+    wall.page.wait_for_timeout(3000)  # the time the tablet's panel took to open, and more
+    expect(frames["wall"].get_by_role("button", name="Front")).to_be_hidden()
+    wall.page.reload()
+    expect(wall.page.frame_locator("#viz-frame").get_by_text("ssp-rehab 3D view")).to_be_visible(timeout=60_000)
+    wall.page.wait_for_timeout(3000)
+    expect(wall.page.frame_locator("#viz-frame").get_by_role("button", name="Front")).to_be_hidden()
+    expect(wall.page.get_by_label("Engineering details")).not_to_be_checked()
+    assert not tablet.errors and not wall.errors, (tablet.errors, wall.errors)
 
 
 def test_history_links_the_pdf_report_of_a_run(console: Any, clinic: dict[str, Any]) -> None:
@@ -214,6 +239,29 @@ def test_booking_conflicts_are_quoted_in_local_time(console: Any, clinic: dict[s
     berlin = taken.astimezone(ZoneInfo("Europe/Berlin")).strftime("%H:%M")
     if berlin != local.strftime("%H:%M"):
         expect(message).not_to_contain_text(berlin)  # not the browser's clock
+
+
+def test_dates_and_times_are_the_clinics_clock_on_every_page(console: Any, clinic: dict[str, Any]) -> None:
+    """The week shows the clinic's wall time; the history, the session console and the patient's bookings
+    show the same booking at the same time, not at the browser's (a laptop set to another zone)."""
+    from zoneinfo import ZoneInfo
+
+    session = console(timezone="America/New_York")
+    page = session.login()
+    taken = dt.datetime.fromisoformat(clinic["booking"]["start"])
+    wall = taken.astimezone(ZoneInfo(clinic["booking"]["timezone"])).strftime("%I:%M %p")  # as en-US shows it
+    browser = taken.astimezone(ZoneInfo("America/New_York")).strftime("%I:%M %p")
+    assert wall != browser, "the test needs a clinic outside New York's zone"
+    booked_row = page.get_by_role("row").filter(has=page.locator(f'a[href="#/session/{clinic["booking"]["id"]}"]'))
+    pages = {
+        "history": ("#/history", booked_row),
+        "session console": (f"#/session/{clinic['booking']['id']}", page.locator("#main")),  # "Booked: ..."
+        "patient profile": (f"#/patients/{clinic['patient']['id']}", booked_row),
+    }
+    for where, (route, shown) in pages.items():
+        session.go(route)
+        expect(shown, where).to_contain_text(wall)
+        expect(shown, where).not_to_contain_text(browser)
 
 
 def test_soap_notes_are_kept_per_run(console: Any, clinic: dict[str, Any]) -> None:

@@ -147,6 +147,14 @@ def test_clinician_flow(console_service: dict[str, object], browser: Any) -> Non
         expect(page.locator("#live-charts")).to_have_attribute(
             "data-replay-samples", re.compile(r"^[1-9]"), timeout=15_000
         )
+        live_frames = _live_samples(page)
+        page.wait_for_timeout(2000)  # live frames keep coming during the replay: none of them is drawn
+        drawn = page.locator("#live-charts").evaluate(
+            "el => [Number(el.dataset.plotted), Number(el.dataset.replaySamples)]"
+        )
+        assert _live_samples(page) > live_frames and drawn[0] == drawn[1], (
+            f"the replay's charts drew {drawn[0]} samples, of which {drawn[1]} from the replayed run"
+        )
         shot(page, "replay")
         page.get_by_role("link", name="Session history").click()
         expect(page.get_by_role("heading", name="Session history")).to_be_visible()

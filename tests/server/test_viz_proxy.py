@@ -4,8 +4,10 @@ viser listens on loopback only and the console relays its page and WebSocket beh
 from __future__ import annotations
 
 import socket
+import time
 from collections.abc import Iterator
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
@@ -16,7 +18,9 @@ from server.app import create_app
 from server.db import Database
 from server.settings import Settings
 from server.viz.view import LiveView
-from tests.server.conftest import Seed
+from tests.server.conftest import ADMIN_PASSWORD, THERAPIST_PASSWORD, Seed
+from tests.server.test_web_security import CSRF_HEADERS as CSRF
+from tests.server.test_web_security import live_server
 
 
 def _free_port() -> int:
@@ -74,3 +78,112 @@ def test_view_socket_relays_viser_to_a_logged_in_user(viz_client: TestClient, se
     ) as socket_:
         first = socket_.receive_bytes()  # viser sends the scene as soon as a client is accepted
     assert len(first) > 0
+
+
+# --- issue 16, 3D view: viser's panel follows each browser's own engineering switch ------------------
+
+
+class ViserBrowser:
+    """One browser's viser client behind the console's relay: it says where its camera is (viser counts a
+    client as connected from then on) and mirrors viser's control panel as viser's page does (per axis and
+    per sender run: a placement command applies when its counter is above that run's last one)."""
+
+    def __init__(self, base_url: str, token: str) -> None:
+        import viser
+        from viser import _messages
+        from websockets.sync.client import connect
+
+        self.socket = connect(
+            base_url.replace("http://", "ws://") + "/api/v1/viz/view",
+            additional_headers={"Authorization": f"Bearer {token}"},
+            subprotocols=[f"viser-v{viser.__version__}"],  # type: ignore[list-item]
+            max_size=None,
+        )
+        camera = _messages.ViewerCameraMessage(
+            wxyz=(1.0, 0.0, 0.0, 0.0), position=(3.4, -3.4, 2.4), fov=1.0, near=0.01, far=100.0,
+            image_height=768, image_width=1024, look_at=(0.0, 0.0, 0.6), up_direction=(0.0, 0.0, 1.0),
+        )  # fmt: skip
+        import msgspec
+
+        self.socket.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        self.collapsed = False  # viser's page shows its panel expanded until told otherwise
+        self._applied: dict[str, int] = {}
+
+    def read(self, quiet_s: float = 1.0) -> bool:
+        """Takes in what viser sent until it has been quiet for `quiet_s` (s); True when the panel is minimized."""
+        import msgspec
+        import zstandard
+
+        while True:
+            try:
+                frame = self.socket.recv(timeout=quiet_s)
+            except TimeoutError:
+                return self.collapsed
+            assert isinstance(frame, bytes)
+            size, compressed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+            inner = zstandard.ZstdDecompressor().decompress(frame[16 : 16 + compressed], max_output_size=size)
+            for message in msgspec.msgpack.decode(inner)["messages"]:
+                if message["type"] != "GuiSetPanelCollapsedMessage" or message["uuid"] != "viser-control-panel":
+                    continue
+                if message["counter"] > self._applied.get(message["run_id"], 0):
+                    self._applied[message["run_id"]] = message["counter"]
+                    self.collapsed = bool(message["collapsed"])
+
+    def close(self) -> None:
+        self.socket.close()
+
+
+def _login(base_url: str, username: str, password: str) -> str:
+    response = httpx.post(f"{base_url}/api/v1/auth/login", json={"username": username, "password": password})
+    assert response.status_code == 200, response.text
+    return str(response.json()["access_token"])
+
+
+def _bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def _wait_for_clients(view: LiveView, count: int) -> None:
+    for _ in range(100):
+        if len(view.server.get_clients()) >= count:
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"viser saw {len(view.server.get_clients())} clients, not {count}")
+
+
+def test_the_engineering_switch_shows_visers_panel_in_that_browser_only(
+    settings: Settings, database: Database, view: LiveView
+) -> None:
+    """The therapist's tablet turns the switch on: the wall screen (the same account, another login) and
+    another therapist keep the panel minimized, also when they reload; the tablet's reload shows it again."""
+    app = create_app(settings, database=database, worker=None)
+    with live_server(app) as base_url:
+        app.state.viz = view
+        tablet, wall = (_login(base_url, "therapist", THERAPIST_PASSWORD) for _device in range(2))
+        colleague = _login(base_url, "admin", ADMIN_PASSWORD)
+        browsers = {name: ViserBrowser(base_url, token) for name, token in
+                    (("tablet", tablet), ("wall", wall), ("colleague", colleague))}  # fmt: skip
+        try:
+            _wait_for_clients(view, 3)
+            assert all(browser.read() for browser in browsers.values()), "viser's panel shows before any switch"
+            switched = httpx.post(f"{base_url}/api/v1/viz/controls", json={"visible": True},
+                                  headers={**_bearer(tablet), **CSRF})  # fmt: skip
+            assert switched.status_code == 200, switched.text
+            assert switched.json()["controls_visible"] is True
+            shown = {name: not browser.read() for name, browser in browsers.items()}
+            assert shown == {"tablet": True, "wall": False, "colleague": False}
+            statuses = {name: httpx.get(f"{base_url}/api/v1/viz", headers=_bearer(token)).json()["controls_visible"]
+                        for name, token in (("tablet", tablet), ("wall", wall))}  # fmt: skip
+            assert statuses == {"tablet": True, "wall": False}
+            for name, token in (("tablet", tablet), ("wall", wall)):  # a reload is a new viser client
+                browsers[name].close()
+                browsers[name] = ViserBrowser(base_url, token)
+            _wait_for_clients(view, 3)
+            shown = {name: not browser.read() for name, browser in browsers.items()}
+            assert shown == {"tablet": True, "wall": False, "colleague": False}
+            httpx.post(f"{base_url}/api/v1/viz/controls", json={"visible": False},
+                       headers={**_bearer(tablet), **CSRF})  # fmt: skip
+            assert all(browser.read() for browser in browsers.values())
+        finally:
+            for browser in browsers.values():
+                browser.close()

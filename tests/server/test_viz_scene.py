@@ -314,10 +314,30 @@ class RecordingPanel:
         self.calls.append("expand")
 
 
-def test_visers_panel_follows_the_engineering_switch() -> None:
+class PanelClient:
+    """A viser client as the view sees it: its id, its own panel, and the address the relay opened it with."""
+
+    def __init__(self, client_id: int, path: str) -> None:
+        self.client_id, self.path = client_id, path
+        self.gui = type("Gui", (), {"main_panel": RecordingPanel()})()
+
+
+def test_visers_panel_follows_each_viewers_own_engineering_switch() -> None:
     view, server = _view_with(None)
-    panel = RecordingPanel()
-    server.gui = type("Gui", (), {"main_panel": panel})()  # type: ignore[attr-defined]
-    view.set_controls_visible(True)
-    view.set_controls_visible(False)
-    assert panel.calls == ["expand", "minimize"] and view.status()["controls_visible"] is False
+    clients = {1: PanelClient(1, "/?viewer=tablet"), 2: PanelClient(2, "/?viewer=wall"), 3: PanelClient(3, "/")}
+    server.get_clients = lambda: clients  # type: ignore[attr-defined]
+    connections = {i: type("Connection", (), {"request": type("Request", (), {"path": c.path})})()
+                   for i, c in clients.items()}  # fmt: skip
+    server._websock_server = type("Websock", (), {"_live_connections": connections})()  # type: ignore[attr-defined]
+    for client in clients.values():
+        view._place_panel(client)
+    view.set_controls_visible("tablet", True)
+    later = clients[4] = PanelClient(4, "/?viewer=tablet")  # the tablet reloads its page
+    connections[4] = type("Connection", (), {"request": type("Request", (), {"path": later.path})})()
+    view._place_panel(later)
+    view.set_controls_visible("tablet", False)
+    calls = {i: c.gui.main_panel.calls for i, c in clients.items()}
+    assert calls == {1: ["minimize", "expand", "minimize"], 2: ["minimize"], 3: ["minimize"], 4: ["expand", "minimize"]}
+    view.set_controls_visible("wall", True)
+    assert view.status("wall")["controls_visible"] and not view.status("tablet")["controls_visible"]
+    assert not view.status()["controls_visible"]  # no viewer named: nobody's switch
