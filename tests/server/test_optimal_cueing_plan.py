@@ -7,16 +7,12 @@ import numpy as np
 import pytest
 
 from core.perception import tilt_rate_check
+from core.plan.build import check_prescription, plan_prescription
+from core.plan.check import PrescriptionRejected, check_plan
+from core.plan.prescription import PrescriptionError
 from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import (
-    PrescriptionError,
-    PrescriptionRejected,
-    check_plan,
-    check_prescription,
-    plan_prescription,
-)
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import SupervisorState
 

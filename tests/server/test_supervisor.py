@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from core.kinematics import twin_inverse_kinematics
+from core.plan.build import plan_prescription
+from core.plan.ramps import PoseRamp
 from core.robot import TwinRobot
 from core.twin_kernels import TwinKernels
 from server.hal.base import DriveState, HalState, HardwareInterface
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import plan_prescription
-from server.realtime.ramps import PoseRamp
 from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, SupervisorConfigError, TransitionRefused
 from server.realtime.telemetry import StopReason, SupervisorState
 
