@@ -218,6 +218,21 @@ if sorted(typing.get_args(m.model_fields["kind"].annotation)[0] for m in _CUE_MO
 # --- Parameter blocks generated from the core dataclasses (one set of defaults) --------------------------
 
 
+class _ParameterBlock(_Strict):
+    """A parameter set of a core dataclass: the model checks each field, the dataclass the rules between them."""
+
+    def parameters(self) -> Any:
+        raise NotImplementedError
+
+    @model_validator(mode="after")
+    def _consistent(self) -> _ParameterBlock:
+        try:
+            self.parameters()
+        except ParameterError as error:
+            raise _field_errors(error) from None
+        return self
+
+
 def _parameters_model(
     cls: type, name: str, doc: str, descriptions: Mapping[str, str], bounds: Mapping[str, dict[str, Any]]
 ) -> type[BaseModel]:
@@ -231,7 +246,7 @@ def _parameters_model(
             kind,
             Field(getattr(defaults, item.name), description=descriptions[item.name], **bounds.get(item.name, {})),
         )
-    model: type[BaseModel] = create_model(name, __base__=_Strict, __doc__=doc, **fields)
+    model: type[BaseModel] = create_model(name, __base__=_ParameterBlock, __doc__=doc, **fields)
     return model
 
 
@@ -269,14 +284,6 @@ class Washout(_WashoutFields):  # type: ignore[misc, valid-type]
     def parameters(self) -> WashoutParameters:
         return WashoutParameters.from_dict(self.model_dump())
 
-    @model_validator(mode="after")
-    def _consistent(self) -> Washout:
-        try:
-            self.parameters()
-        except ParameterError as error:
-            raise _field_errors(error) from None
-        return self
-
 
 _SHAPING_DESCRIPTIONS = {
     "enabled": "Shape the platform commands against the first natural frequency.",
@@ -312,14 +319,6 @@ class Shaping(_ShapingFields):  # type: ignore[misc, valid-type]
 
     def parameters(self) -> ShapingParameters:
         return ShapingParameters.from_dict(self.model_dump())
-
-    @model_validator(mode="after")
-    def _consistent(self) -> Shaping:
-        try:
-            self.parameters()
-        except ParameterError as error:
-            raise _field_errors(error) from None
-        return self
 
 
 _LIMIT_DESCRIPTIONS = {

@@ -323,7 +323,7 @@ def test_per_tick_kinematics_match_the_batch_reference(twin: TwinRobot) -> None:
             velocity.copy(),
             np.full(12, -9.0),
             np.full(12, 9.0),
-            np.array([9.0] * 6 + [0.0]),  # the kernel's limits vector (server.realtime.limits.kernel_vector)
+            np.array([9.0] * 6 + [0.0]),  # the kernel's limits vector (core.plan.limits.SessionLimits.kernel_vector)
             sliders,
             velocity,
             acceleration,
