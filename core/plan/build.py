@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from core.cues import CueSpecError, validate_cue_spec
 from core.dynamics import PayloadModel
 from core.falls import FallDetectorConfig
 from core.optimal_cueing import CueingWorkspace, OptimalCueingParameters, OptimalCueingPlanner
@@ -125,8 +126,14 @@ def _robot_settings(
     index: int, segment: Segment, twin: TwinRobot, period: float, config: PlanConfig
 ) -> tuple[SessionLimits, ShapingParameters]:
     """What the model cannot know: the robot's limits (only ever tightened), the shaper at this control rate,
-    the soft start within the segment. Refuses with the model's error shape, at the segment's field."""
+    the soft start within the segment; and what it leaves to a worker thread (a CSV cue's rows). Refuses
+    with the model's error shape, at the segment's field."""
     prefix = f"segments[{index}]"
+    if segment.cue.check_deferred:
+        try:
+            validate_cue_spec(segment.cue.spec())
+        except CueSpecError as error:
+            raise PrescriptionError(f"{prefix}.cue.{error.field}", error.value, error.limit) from None
     if segment.duration_s < config.soft_start_s:
         raise PrescriptionError(
             f"{prefix}.duration_s", segment.duration_s, f"must be at least the soft start, {config.soft_start_s:g} s"
@@ -150,8 +157,8 @@ def check_for_robot(
     control_rate_hz: int = DEFAULT_CONTROL_RATE_HZ,
     config: PlanConfig | None = None,
 ) -> None:
-    """The robot- and rate-dependent checks of `plan_prescription` alone (cheap): the API runs them before
-    it stores a prescription."""
+    """The robot- and rate-dependent checks of `plan_prescription` alone, and the CSV parse the model leaves
+    to a worker thread: the API runs them (in the request's thread) before it stores a prescription."""
     for index, segment in enumerate(prescription.segments):
         _robot_settings(index, segment, twin, 1.0 / control_rate_hz, config or PlanConfig())
 

@@ -5,7 +5,7 @@
 
 - `cue` is a union discriminated by `kind`, one model per kind of `core.cues`, every field with its type,
   range and unit; the rules between fields (an axis and the unit of its amplitude, a step's end after its
-  start, ...) are `core.cues`' own and run as part of validation.
+  start, ...) are `core.cues`' own and run as part of validation (a CSV's rows: when the plan is built).
 - `washout` holds `core.washout.WashoutParameters` (default: the set that reproduces paper §5), `shaping`
   `core.shaping.ShapingParameters`, `limits` overrides of `core.robot.MotionLimits`.
 - At most `SEGMENT_COUNT_MAX` segments, everywhere.
@@ -26,7 +26,7 @@ import math
 import re
 import typing
 from collections.abc import Mapping
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, create_model, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError
@@ -90,6 +90,9 @@ class _Cue(_Strict):
     """A cue kind; `core.cues` builds its generator from `spec()` and checks the rules between fields."""
 
     kind: str
+    # Checked when the plan is built (`core.plan.build.check_for_robot`), not by the model: the API validates
+    # request bodies on its event loop, and parsing up to 32 MiB of CSV there would stall it.
+    check_deferred: ClassVar[bool] = False
 
     def spec(self) -> dict[str, Any]:
         """The cue as given (defaults stay implicit, so a stored cue reads as it was written)."""
@@ -97,10 +100,11 @@ class _Cue(_Strict):
 
     @model_validator(mode="after")
     def _generator_accepts(self) -> _Cue:
-        try:
-            cues.validate_cue_spec(self.spec())
-        except CueSpecError as error:
-            raise _field_errors(error) from None
+        if not self.check_deferred:
+            try:
+                cues.validate_cue_spec(self.spec())
+            except CueSpecError as error:
+                raise _field_errors(error) from None
         return self
 
 
@@ -199,6 +203,7 @@ class CsvReplayCue(_Cue):
     """Replay of recorded samples, linearly interpolated onto the control period; zero after the last row."""
 
     kind: Literal["csv_replay"]
+    check_deferred: ClassVar[bool] = True  # the CSV is parsed in the request's worker thread
     csv: str = Field(
         max_length=CSV_CUE_MAX_BYTES,
         description="CSV text with a header: time_s, specific_force_x_m_s2, specific_force_y_m_s2, "

@@ -68,6 +68,20 @@ def test_invalid_shaping_is_refused_naming_the_field_before_any_write(client: Te
     assert client.get("/api/v1/prescriptions", headers=seed.headers()).json() == []
 
 
+def test_a_csv_cue_is_parsed_in_the_requests_thread_not_by_the_model(client: TestClient, seed: Seed) -> None:
+    """The API validates bodies on its event loop: the model only bounds the CSV's size; its rows are parsed by
+    the check before the write (in the request's worker thread), with the same error shape."""
+    header = "time_s,specific_force_x_m_s2,specific_force_y_m_s2,specific_force_z_m_s2"
+    segment = {"cue": {"kind": "csv_replay", "csv": f"{header}\n0,0,0,0\n1,0,99,0\n"}, "duration_s": 5.0}
+    assert parse_prescription({"segments": [segment]}).segments[0].cue.check_deferred
+    refused = _post(client, seed, [segment])
+    assert refused.status_code == 422
+    detail = refused.json()["detail"][0]
+    assert detail["loc"] == ["body", "segments[0]", "cue", "csv[2]", "specific_force_y_m_s2"]
+    assert "99" in detail["msg"] and "[-10, 10]" in detail["msg"]
+    assert client.get("/api/v1/prescriptions", headers=seed.headers()).json() == []
+
+
 # --- defect (b): one segment limit ---------------------------------------------------------------------------
 
 
