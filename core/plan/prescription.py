@@ -239,8 +239,9 @@ class _ParameterBlock(_Strict):
 
 
 def _parameters_model(
-    cls: type, name: str, doc: str, descriptions: Mapping[str, str], bounds: Mapping[str, dict[str, Any]]
+    cls: type, descriptions: Mapping[str, str], bounds: Mapping[str, dict[str, Any]]
 ) -> type[BaseModel]:
+    """The fields of the dataclass `cls`, typed and bounded, with its defaults (one set of them)."""
     hints = typing.get_type_hints(cls)
     defaults = cls()
     fields: dict[str, Any] = {}
@@ -251,7 +252,7 @@ def _parameters_model(
             kind,
             Field(getattr(defaults, item.name), description=descriptions[item.name], **bounds.get(item.name, {})),
         )
-    model: type[BaseModel] = create_model(name, __base__=_ParameterBlock, __doc__=doc, **fields)
+    model: type[BaseModel] = create_model(f"_{cls.__name__}Fields", __base__=_ParameterBlock, **fields)
     return model
 
 
@@ -273,13 +274,7 @@ _WASHOUT_DESCRIPTIONS = {
 _WASHOUT_BOUNDS = {name: {"ge": 0.0} if name.endswith("_gain") else {"gt": 0.0} for name in _WASHOUT_DESCRIPTIONS} | {
     "head_height_m": {"ge": 0.0, "le": HEAD_HEIGHT_MAX_M}
 }
-_WashoutFields = _parameters_model(
-    WashoutParameters,
-    "WashoutParameters",
-    "Classical washout (paper §4.1, core.washout), SI units. A field left out takes the baseline value shown.",
-    _WASHOUT_DESCRIPTIONS,
-    _WASHOUT_BOUNDS,
-)
+_WashoutFields = _parameters_model(WashoutParameters, _WASHOUT_DESCRIPTIONS, _WASHOUT_BOUNDS)
 
 
 class Washout(_WashoutFields):  # type: ignore[misc, valid-type]
@@ -309,13 +304,7 @@ _SHAPING_BOUNDS: dict[str, dict[str, Any]] = {
     "first_mode_hz": {"gt": 0.0},
     "mode_band_fraction": {"ge": 0.0, "lt": 1.0},
 }
-_ShapingFields = _parameters_model(
-    ShapingParameters,
-    "ShapingParameters",
-    "Command shaping of every pose coordinate (core.shaping). A field left out takes the default shown.",
-    _SHAPING_DESCRIPTIONS,
-    _SHAPING_BOUNDS,
-)
+_ShapingFields = _parameters_model(ShapingParameters, _SHAPING_DESCRIPTIONS, _SHAPING_BOUNDS)
 
 
 class Shaping(_ShapingFields):  # type: ignore[misc, valid-type]
@@ -336,9 +325,8 @@ _LIMIT_DESCRIPTIONS = {
     "condition_number_max": "Largest condition number of the twist Jacobian (distance from singularities).",
 }
 _LimitFields: type[BaseModel] = create_model(
-    "MotionLimitOverrides",
+    "_MotionLimitFields",
     __base__=_Strict,
-    __doc__="Overrides of the robot's MotionLimits for this segment; each may only tighten the robot's own.",
     **{
         item.name: (float | None, Field(None, gt=0.0, description=_LIMIT_DESCRIPTIONS[item.name]))
         for item in dataclasses.fields(MotionLimits)
