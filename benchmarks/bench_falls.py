@@ -94,10 +94,10 @@ def _merged(config: FallDetectorConfig, overrides: dict[str, Any]) -> dict[str, 
 
 def normal_sessions(count: int, duration_s: float) -> dict[str, Any]:
     """Training sines on random patients, played through the worker's tick pipeline on the kinematic HAL."""
+    from core.plan.build import plan_prescription
     from core.robot import default_twin
     from server.hal.kinematic import KinematicHal
     from server.realtime.pipeline import TickPipeline
-    from server.realtime.prescription import plan_prescription
     from server.realtime.supervisor import SupervisorConfig
     from server.realtime.telemetry import StopReason
 

@@ -30,10 +30,10 @@ from core.rotations import rotation_into
 
 # Row layout of the (4,) violation output: code, axis (0..11, −1 for the whole body), value, limit.
 VIOLATION_FIELDS = 4
-# Violation codes; server.realtime.telemetry.LimitCode names the same numbers (a test checks).
+# Violation codes; core.plan.limits.LimitCode names the same numbers (a test checks).
 ROD_REACH, STROKE, BASE_JOINT_CONE, PLATFORM_JOINT_CONE, TILT, SLIDER_VELOCITY, SLIDER_ACCELERATION = range(1, 8)
 COLLISION = 10
-# The limits vector the command kernel reads (server.realtime.limits builds it): base cone, platform cone,
+# The limits vector the command kernel reads (core.plan.limits.SessionLimits builds it): base cone, platform cone,
 # tilt, slider velocity, slider acceleration, drive force, clearance.
 LIMITS_VECTOR_SIZE = 7
 # Every limit open: infinite bounds, no clearance required (start-up states are not checked).

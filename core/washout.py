@@ -118,6 +118,8 @@ def _lowpass_peak_factor(damping: float) -> float:
     if damping >= 1.0:
         return 1.0
     overshoot = math.exp(-math.pi * damping / math.sqrt(1.0 - damping * damping))
+    if overshoot >= 1.0:  # damping so small that the exponential rounds to 1: the filter rings without bound
+        return math.inf
     return (1.0 + overshoot) / (1.0 - overshoot)
 
 

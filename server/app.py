@@ -33,7 +33,6 @@ from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
-from server.prescriptions.validation import robot_limits
 from server.robotd.daemon import RobotDaemon
 from server.robotd.link import LocalLink
 from server.robotd.process import daemon_running
@@ -279,7 +278,6 @@ def create_app(
     )
     app.state.settings = settings
     app.state.twin = twin
-    app.state.robot_limits = robot_limits(twin)
     app.state.pseudonym_key = hmac.new(secret_key, b"patient pseudonyms", hashlib.sha256).digest()
     app.state.auth = AuthState(
         signer=TokenSigner(secret_key),

@@ -383,6 +383,7 @@ function segmentEditor(index, segment, onRemove) {
     if (tilt.value !== "") limits.tilt_max_rad = Number(tilt.value) / RAD_TO_DEG;
     const result = { cue: spec, duration_s: Number(duration.value), limits };
     if (segment.washout) result.washout = segment.washout;
+    if (segment.shaping) result.shaping = segment.shaping; // kept on revision, as the washout is
     return result;
   };
   return box;

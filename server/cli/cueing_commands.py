@@ -26,19 +26,15 @@ import typer
 from core.clearance import min_clearance
 from core.kinematics import condition_number, euler_from_rotation, twin_inverse_kinematics, twin_platform_poses
 from core.perception import DEFAULT_HEAD_HEIGHT_M, head_height_m
+from core.plan.build import PrescriptionPlan, plan_prescription
+from core.plan.check import PrescriptionRejected, check_plan
+from core.plan.prescription import CUEING_ALGORITHMS, PrescriptionError
+from core.plan.timeline import prescription_timeline
 from core.robot import GRAVITY_M_S2, TwinRobot
 from core.vestibular import PerceptionThresholds
 from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
-from server.prescriptions.preview import perceived_at_head, prescription_timeline
-from server.realtime.prescription import (
-    CUEING_ALGORITHMS,
-    PrescriptionError,
-    PrescriptionPlan,
-    PrescriptionRejected,
-    check_plan,
-    plan_prescription,
-)
+from server.prescriptions.preview import perceived_at_head
 
 # The comparison suite: the paper's two scenarios and three clinical ones (issue 14 §5).
 SUITE: dict[str, dict[str, Any]] = {
@@ -124,7 +120,11 @@ def _stroke_use(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
 
 def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient: dict[str, Any] | None = None) -> dict:
     """Plan (timed), check and judge one prescription with one algorithm; `_series` holds the curves."""
-    body = {key: value for key, value in prescription.items() if key in ("segments", "seed", "name")}
+    # The body of POST /api/v1/prescriptions: its patient and note do not shape the plan; anything else is
+    # validated by the one prescription model (an unknown key is refused, not dropped).
+    if not isinstance(prescription, dict):
+        raise PrescriptionError("prescription", type(prescription).__name__, "must be an object with 'segments'")
+    body = {key: value for key, value in prescription.items() if key not in ("patient_id", "note")}
     started, cpu_started = time.perf_counter(), time.process_time()
     plan: PrescriptionPlan = plan_prescription({**body, "cueing": cueing}, twin, patient=patient)
     planning_wall_s, planning_cpu_s = time.perf_counter() - started, time.process_time() - cpu_started

@@ -11,10 +11,13 @@ from typing import Any
 import numpy as np
 import typer
 
+from core.plan.build import check_prescription
+from core.plan.check import PrescriptionRejected
+from core.plan.config import DEFAULT_CONTROL_RATE_HZ
+from core.plan.prescription import PrescriptionError
 from server.cli.output import console, emit, fail, print_violations_by_reason, progress_bar
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
-from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, LoopConfigError
-from server.realtime.prescription import PrescriptionError, PrescriptionRejected, check_prescription
+from server.realtime.loop import LoopConfigError, validate_control_rate
 
 realtime_app = typer.Typer(help="The real-time worker: prescription checks and worker runs.", no_args_is_help=True)
 
@@ -52,8 +55,9 @@ def check(
     prescription = _read_json(prescription_file, "prescription_file", as_json)
     patient = _read_json(patient_file, "patient_file", as_json)
     try:
+        rate_hz = validate_control_rate(control_rate_hz)  # the worker's range, not only what a plan allows
         report = check_prescription(
-            prescription, twin_from_option(robot_file), control_rate_hz=control_rate_hz, patient=patient
+            prescription, twin_from_option(robot_file), control_rate_hz=rate_hz, patient=patient
         )
     except PrescriptionRejected as rejected:
         emit({"rejected": rejected.to_dict()}, as_json=as_json, human=_human_report)

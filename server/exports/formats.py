@@ -21,10 +21,11 @@ import pyarrow as pa
 import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
 
+from core.plan.limits import LimitCode
 from server.exports.c3d import COP_FORCE_THRESHOLD_N, export_c3d
 from server.exports.log import SessionLog, SessionLogError, to_json
 from server.hal.base import DriveState
-from server.realtime.telemetry import HAL_STATES_BY_CODE, LimitCode, StopReason, SupervisorState
+from server.realtime.telemetry import HAL_STATES_BY_CODE, StopReason, SupervisorState
 
 METADATA_KEY = b"ssp_rehab.metadata"
 EVENTS_KEY = b"ssp_rehab.events"

@@ -95,7 +95,7 @@ class DriveState(enum.IntEnum):
 
 
 class PatientLike(Protocol):
-    """What `attach_patient` needs (server.realtime.prescription.PatientSetup has it)."""
+    """What `attach_patient` needs (core.plan.build.PatientSetup has it)."""
 
     @property
     def parameters(self) -> PatientParameters: ...

@@ -1,15 +1,15 @@
 """`POST /prescriptions/preview`: what a prescription would do, before it is stored or run.
 
-It plays the prescription offline through the worker's own batch pipeline (`server.realtime.prescription`:
-cue × soft-start/fade gains → washout (paper §4.1) → command shaping → quintic return to neutral →
-twin IK), then reports, decimated for plotting:
+It builds the plan with the worker's own pipeline (`core.plan.build.build_plan`: cue × soft-start/fade gains
+→ washout (paper §4.1) and command shaping, or optimal cueing → quintic return to neutral → twin IK → the
+independent check), then reports, decimated for plotting:
 - the platform motion (stance pose, m and rad);
 - the algorithm (`cueing`: classical washout or optimal cueing, issue 14);
 - the specific force the patient should feel (the cue) and the one the platform gives at the patient's
   head (`core.perception.head_specific_force`, lever arm included), each through the otolith model
   (Formula 14), and the cued and delivered angular velocity through the canal model (Formula 15);
 - every slider's position against its stroke;
-and the worker's verdict (`check_plan`): the peak use of every limit, or the first limit it would break.
+and the check's verdict: the peak use of every limit, or the first limit it would break.
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from pydantic import ConfigDict, Field
 
 from core.kinematics import twin_inverse_kinematics
 from core.perception import head_angular_velocity, head_height_m, head_specific_force
+from core.plan.build import build_plan
+from core.plan.config import PlanConfig
+from core.plan.prescription import PrescriptionBody, PrescriptionError
+from core.plan.timeline import prescription_timeline
 from core.robot import TwinRobot
 from core.vestibular import VestibularModel
 from server.api_types import MAX_ID, RequestModel
@@ -29,19 +33,7 @@ from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.errors import InvalidFieldError
 from server.patients.service import read_patient
-from server.prescriptions.schemas import EXAMPLE_SEGMENT, Cueing, Segments
-from server.prescriptions.validation import validated_prescription
-from server.realtime.prescription import (
-    PrescriptionError,
-    PrescriptionPlan,
-    PrescriptionRejected,
-    check_plan,
-    finite_differences,
-    plan_prescription,
-    return_ramp,
-    segment_cue,
-    segment_cue_poses,
-)
+from server.prescriptions.schemas import EXAMPLE_SEGMENT
 
 router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
 
@@ -49,36 +41,10 @@ PREVIEW_DURATION_MAX_S = 600.0  # bounds the work (and memory) of one preview at
 PREVIEW_POINTS = 1200  # per curve: enough for a plot a screen wide
 
 
-class PreviewRequest(RequestModel):
-    segments: Segments
-    cueing: Cueing = "classical"
+class PreviewRequest(PrescriptionBody, RequestModel):
     patient_id: Annotated[int | None, Field(ge=1, le=MAX_ID, description="Payload for the dynamics check.")] = None
 
     model_config = ConfigDict(json_schema_extra={"examples": [{"segments": [EXAMPLE_SEGMENT]}]})
-
-
-def prescription_timeline(plan: PrescriptionPlan) -> dict[str, np.ndarray]:
-    """Every control tick of the whole prescription: cue (N, 3) ×2 as played, stance pose, velocity and
-    acceleration (N, 6) each, and the segment index (N,)."""
-    period, config = plan.sample_period_s, plan.config
-    previous_pose, previous_velocity = np.zeros(6), np.zeros(6)
-    names = ("force", "angular", "poses", "velocity", "acceleration", "segment")
-    parts: dict[str, list[np.ndarray]] = {name: [] for name in names}
-    for segment in plan.segments:
-        force, angular = segment_cue(segment, period, config)
-        _, _, cue_poses = segment_cue_poses(segment, period, config)
-        velocity, acceleration = finite_differences(cue_poses, period, previous_pose, previous_velocity)
-        back = return_ramp(cue_poses[-1], velocity[-1], acceleration[-1], period, config)
-        poses = np.concatenate([cue_poses, back])
-        velocity, acceleration = finite_differences(poses, period, previous_pose, previous_velocity)
-        parts["force"].append(np.concatenate([force, np.zeros((len(back), 3))]))
-        parts["angular"].append(np.concatenate([angular, np.zeros((len(back), 3))]))
-        parts["poses"].append(poses)
-        parts["velocity"].append(velocity)
-        parts["acceleration"].append(acceleration)
-        parts["segment"].append(np.full(len(poses), segment.index))
-        previous_pose, previous_velocity = poses[-1], velocity[-1]
-    return {name: np.concatenate(values) for name, values in parts.items()}
 
 
 def perceived_at_head(timeline: dict[str, np.ndarray], sample_period_s: float, head_height_m: float) -> dict:
@@ -98,18 +64,19 @@ def perceived_at_head(timeline: dict[str, np.ndarray], sample_period_s: float, h
 
 
 def prescription_preview(
-    prescription: dict[str, Any], twin: TwinRobot, *, control_rate_hz: int, patient: dict[str, Any] | None = None
+    prescription: PrescriptionBody, twin: TwinRobot, *, control_rate_hz: int, patient: dict[str, Any] | None = None
 ) -> dict[str, Any]:
     """The preview of a validated prescription (SI units, time-major lists) and the worker's verdict."""
-    try:
-        plan = plan_prescription(prescription, twin, control_rate_hz=control_rate_hz, patient=patient)
-    except PrescriptionError as error:
-        raise InvalidFieldError(error.field, error.value, error.limit) from error
-    total_s = sum(s.duration_s + plan.config.fade_out_s for s in plan.segments)
-    if total_s > PREVIEW_DURATION_MAX_S:
+    total_s = sum(s.duration_s + PlanConfig().fade_out_s for s in prescription.segments)
+    if total_s > PREVIEW_DURATION_MAX_S:  # refused before any work
         raise InvalidFieldError(
             "segments", f"{total_s:g} s in all", f"the preview covers at most {PREVIEW_DURATION_MAX_S:g} s"
         )
+    try:
+        checked = build_plan(prescription, twin, control_rate_hz=control_rate_hz, patient=patient)
+    except PrescriptionError as error:
+        raise InvalidFieldError(error.field, error.value, error.limit) from error
+    plan = checked.plan
     period = plan.sample_period_s
     timeline = prescription_timeline(plan)
     poses = timeline["poses"]
@@ -121,10 +88,11 @@ def prescription_preview(
     sliders = np.full((len(poses), 12), np.nan)
     sliders[rows] = np.concatenate([solutions[side].slider_positions_m for side in twin.sides], axis=1)
     robots = [twin.robot_for(side) for side in twin.sides]
-    try:
-        verdict: dict[str, Any] = {"accepted": True, "report": check_plan(plan, twin).to_dict()}
-    except PrescriptionRejected as rejection:
-        verdict = {"accepted": False, "rejection": rejection.to_dict()}
+    verdict: dict[str, Any] = (
+        {"accepted": False, "rejection": checked.rejection.to_dict()}
+        if checked.rejection is not None
+        else {"accepted": True, "report": checked.accepted().to_dict()}
+    )
 
     def series(values: np.ndarray) -> list[Any]:
         picked = values[rows]
@@ -162,15 +130,12 @@ def preview_prescription(
     data: PreviewRequest, request: Request, session: SessionDep, user: CurrentUser
 ) -> dict[str, Any]:
     """Plots-ready preview of the segments as the robot would play them, and whether the robot accepts them."""
-    prescription = validated_prescription(
-        [s.model_dump() for s in data.segments], limits=request.app.state.robot_limits, cueing=data.cueing
-    )
     patient = None
     if data.patient_id is not None:
         record = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
         patient = {"body_mass_kg": record.body_mass_kg, "height_m": record.height_m}
     return prescription_preview(
-        prescription,
+        data,
         request.app.state.twin,
         control_rate_hz=request.app.state.settings.control_rate_hz,
         patient=patient,

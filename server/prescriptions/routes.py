@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query, Request, status
 
@@ -34,9 +34,9 @@ def _out(prescription: Prescription) -> PrescriptionOut:
     )
 
 
-def _limits(request: Request) -> dict[str, float]:
-    limits: dict[str, float] = request.app.state.robot_limits
-    return limits
+def _robot(request: Request) -> dict[str, Any]:
+    """The robot a prescription must fit (its limits may only be tightened) and its control rate."""
+    return {"twin": request.app.state.twin, "control_rate_hz": request.app.state.settings.control_rate_hz}
 
 
 @router.get("", response_model=list[PrescriptionOut])
@@ -54,7 +54,7 @@ def list_prescriptions(
 def create_prescription(
     data: PrescriptionCreate, request: Request, session: SessionDep, user: CurrentUser
 ) -> PrescriptionOut:
-    prescription = service.create_prescription(session=session, data=data, limits=_limits(request), actor_id=user.id)
+    prescription = service.create_prescription(session=session, data=data, actor_id=user.id, **_robot(request))
     return _out(prescription)
 
 
@@ -69,7 +69,7 @@ def revise_prescription(
 ) -> PrescriptionOut:
     """Editing creates a new version; sessions keep referring to the version they were scheduled with."""
     prescription = service.revise_prescription(
-        session=session, prescription_id=prescription_id, data=data, limits=_limits(request), actor_id=user.id
+        session=session, prescription_id=prescription_id, data=data, actor_id=user.id, **_robot(request)
     )
     return _out(prescription)
 

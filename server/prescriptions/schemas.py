@@ -1,12 +1,14 @@
-"""Prescription requests and answers (see the agreed prescription format in docs/service.md)."""
+"""Prescription requests and answers. What is prescribed is `core.plan.prescription` (the one model of a
+prescription, docs/service.md); the requests add the patient, the name and the note."""
 
 from __future__ import annotations
 
 import datetime as dt
-from typing import Annotated, Any, Literal
+from typing import Any
 
 from pydantic import ConfigDict, Field
 
+from core.plan.prescription import PrescriptionBody
 from server.api_types import MAX_ID, LongText, Name, RequestModel, ResponseModel
 
 EXAMPLE_SEGMENT: dict[str, Any] = {
@@ -16,32 +18,9 @@ EXAMPLE_SEGMENT: dict[str, Any] = {
 }
 
 
-class SegmentIn(RequestModel):
-    cue: dict[str, Any] = Field(description='Cue generator spec, e.g. `{"kind": "sine", ...}` (core.cues).')
-    duration_s: float = Field(gt=0.0, le=3600.0)
-    washout: dict[str, Any] | None = Field(
-        None, description="WashoutParameters.to_dict(); default: the set that reproduces paper Section 5."
-    )
-    limits: dict[str, float] = Field(
-        default_factory=dict, description="Overrides of the robot's MotionLimits; they may only tighten them."
-    )
-
-    model_config = ConfigDict(json_schema_extra={"examples": [EXAMPLE_SEGMENT]})
-
-
-Segments = Annotated[list[SegmentIn], Field(min_length=1, max_length=50)]
-Cueing = Annotated[
-    Literal["classical", "optimal"],
-    Field(description="Motion cueing: the paper's classical washout, or optimal cueing planned over the whole "
-          "prescription (core.optimal_cueing)."),
-]  # fmt: skip
-
-
-class PrescriptionCreate(RequestModel):
+class PrescriptionCreate(PrescriptionBody, RequestModel):
     patient_id: int = Field(ge=1, le=MAX_ID)
     name: Name
-    segments: Segments
-    cueing: Cueing = "classical"
     note: LongText = ""
 
     model_config = ConfigDict(
@@ -51,11 +30,9 @@ class PrescriptionCreate(RequestModel):
     )
 
 
-class PrescriptionRevise(RequestModel):
+class PrescriptionRevise(PrescriptionBody, RequestModel):
     """A new version: the segments replace the previous version's; earlier versions stay as they were."""
 
-    segments: Segments
-    cueing: Cueing = "classical"
     name: Name | None = None
     note: LongText = ""
 

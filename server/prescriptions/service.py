@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from core.plan.build import check_for_robot
+from core.plan.prescription import PrescriptionBody, PrescriptionError
+from core.robot import TwinRobot
 from server.audit import service as audit
 from server.db import writes
-from server.errors import NotFoundError
+from server.errors import InvalidFieldError, NotFoundError
 from server.patients.service import find_patient
 from server.prescriptions.models import Prescription, PrescriptionVersion
-from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise, SegmentIn
-from server.prescriptions.validation import validated_prescription
+from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise
 
 
-def _content(segments: list[SegmentIn], limits: dict[str, float], cueing: str) -> dict[str, object]:
-    return validated_prescription([s.model_dump() for s in segments], limits=limits, cueing=cueing)
+def _content(data: PrescriptionBody, twin: TwinRobot, control_rate_hz: int) -> dict[str, Any]:
+    """What is stored: the model validated the request; this robot may only tighten its limits (and the
+    shaping must hold at its control rate). Refused before any write."""
+    try:
+        check_for_robot(data, twin, control_rate_hz=control_rate_hz)
+    except PrescriptionError as error:
+        raise InvalidFieldError(error.field, error.value, error.limit) from None
+    return data.content()
 
 
 def get_prescription(*, session: Session, prescription_id: int) -> Prescription:
@@ -42,10 +52,10 @@ def latest(prescription: Prescription) -> PrescriptionVersion:
 
 @writes
 def create_prescription(
-    *, session: Session, data: PrescriptionCreate, limits: dict[str, float], actor_id: int
+    *, session: Session, data: PrescriptionCreate, twin: TwinRobot, control_rate_hz: int, actor_id: int
 ) -> Prescription:
     find_patient(session=session, patient_id=data.patient_id)
-    content = _content(data.segments, limits, data.cueing)
+    content = _content(data, twin, control_rate_hz)
     prescription = Prescription(patient_id=data.patient_id, name=data.name, latest_version=1, created_by_id=actor_id)
     prescription.versions.append(
         PrescriptionVersion(version=1, content=content, note=data.note, created_by_id=actor_id)
@@ -65,10 +75,16 @@ def create_prescription(
 
 @writes
 def revise_prescription(
-    *, session: Session, prescription_id: int, data: PrescriptionRevise, limits: dict[str, float], actor_id: int
+    *,
+    session: Session,
+    prescription_id: int,
+    data: PrescriptionRevise,
+    twin: TwinRobot,
+    control_rate_hz: int,
+    actor_id: int,
 ) -> Prescription:
     prescription = get_prescription(session=session, prescription_id=prescription_id)
-    content = _content(data.segments, limits, data.cueing)
+    content = _content(data, twin, control_rate_hz)
     prescription.latest_version += 1
     if data.name is not None:
         prescription.name = data.name

@@ -21,10 +21,12 @@ from typing import Any
 
 import numpy as np
 
+from core.plan.check import PrescriptionRejected
+from core.plan.config import DEFAULT_CONTROL_RATE_HZ
+from core.plan.prescription import PrescriptionError
 from server.hal.backends import BACKENDS
 from server.realtime.heartbeat import SERVICE_STALL_TOLERANCE_S, relay_entry
-from server.realtime.loop import DEFAULT_CONTROL_RATE_HZ, validate_control_rate
-from server.realtime.prescription import PrescriptionError, PrescriptionRejected
+from server.realtime.loop import validate_control_rate
 from server.realtime.shm import ControlBlock, Seqlock, SharedRing
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict

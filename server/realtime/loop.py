@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from core.errors import InvalidValueError
 
 CONTROL_RATE_RANGE_HZ = (250, 2000)
-DEFAULT_CONTROL_RATE_HZ = 1000
 LATE_THRESHOLD_NS = 500_000  # a tick that starts more than 500 µs after its deadline counts as late
 _PR_SET_TIMERSLACK = 29
 

@@ -27,6 +27,9 @@ from core.cues import CueGenerator, cue_from_spec
 from core.dynamics import TwinInverseDynamics
 from core.falls import FallMonitor
 from core.kinematics import ForwardKinematicsError
+from core.plan.build import PrescriptionPlan, SegmentPlan
+from core.plan.limits import LIMIT_UNITS, LimitCode, SessionLimits
+from core.plan.ramps import PoseRamp, cue_gain, smoothstep5, start_velocity
 from core.robot import TwinRobot
 from core.shaping import CommandShaper
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
@@ -40,19 +43,9 @@ from server.hal.base import (
     HalState,
     HardwareInterface,
 )
-from server.realtime.limits import SessionLimits
 from server.realtime.loop import LATE_THRESHOLD_NS
-from server.realtime.prescription import PrescriptionPlan, SegmentPlan
-from server.realtime.ramps import PoseRamp, cue_gain, return_duration_s, smoothstep5, start_velocity
 from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, TransitionRefused
-from server.realtime.telemetry import (
-    HAL_STATE_CODES,
-    LIMIT_UNITS,
-    TELEMETRY_DTYPE,
-    LimitCode,
-    StopReason,
-    SupervisorState,
-)
+from server.realtime.telemetry import HAL_STATE_CODES, TELEMETRY_DTYPE, StopReason, SupervisorState
 
 EventEmitter = Callable[[str, dict[str, Any], "str | None"], None]
 
@@ -427,16 +420,7 @@ class TickPipeline:
         return start_velocity(self.velocity, self.acceleration, self.period_s, self._ramp_start_velocity)
 
     def _return_duration(self) -> float:
-        c = self.config
-        return return_duration_s(
-            self.pose,
-            self._ramp_velocity(),
-            minimum_s=c.return_min_s,
-            speed_m_s=c.return_speed_m_s,
-            rate_rad_s=c.return_rate_rad_s,
-            acceleration_m_s2=c.return_acceleration_m_s2,
-            angular_acceleration_rad_s2=c.return_angular_acceleration_rad_s2,
-        )
+        return self.config.return_duration_s(self.pose, self._ramp_velocity())
 
     def _use_limits(self, limits: SessionLimits) -> None:
         self._limits_vector = limits.kernel_vector()
@@ -604,8 +588,8 @@ def ideal_session(
 ) -> TickPipeline:
     """A pipeline on an ideal (kinematic) HAL with `prescription` loaded and motion started, ticked by the
     caller: for compiling the tick path and for timing it."""
+    from core.plan.build import plan_prescription
     from server.hal.kinematic import KinematicHal
-    from server.realtime.prescription import plan_prescription
 
     hal = KinematicHal(twin, 1.0 / control_rate_hz, communication_timeout_s=60.0)
     hal.configure()

@@ -18,13 +18,12 @@ This class decides; it does no arithmetic on motion and no I/O. `TickPipeline` p
 from __future__ import annotations
 
 import enum
-import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
-from typing import Any
+from dataclasses import asdict, dataclass
+from typing import Any, ClassVar
 
-from core.clearance import IK_EXACT_BELOW_M
 from core.errors import InvalidValueError, refuse_unknown_fields
+from core.plan.config import PlanConfig, PlanConfigError
 from server.realtime.telemetry import StopReason, SupervisorState
 
 MOTION_STATES = (SupervisorState.RUNNING, SupervisorState.PAUSED, SupervisorState.STOPPING)
@@ -48,49 +47,31 @@ class TransitionRefused(RuntimeError):  # noqa: N818 — a refusal, not a malfun
         super().__init__(f"{command}: not accepted in state {state.label}" + (f" ({reason})" if reason else ""))
 
 
-class SupervisorConfigError(InvalidValueError):
+class SupervisorConfigError(PlanConfigError):
     """An invalid safety-supervisor setting."""
 
 
 @dataclass(frozen=True)
-class SupervisorConfig:
-    """Timings and thresholds of the safety functions; all configurable, all validated."""
+class SupervisorConfig(PlanConfig):
+    """Timings and thresholds of the safety functions; all configurable, all validated. The plan's own
+    settings (soft start, fade out, returns, margins) come from `core.plan.config.PlanConfig`, so that the
+    plan is built and played with the same numbers."""
 
-    soft_start_s: float = 1.0  # cue gain 0 → 1 (quintic) at each segment start and on resume
-    fade_out_s: float = 1.0  # cue gain 1 → 0 after each segment's duration
     estop_ramp_s: float = 0.3  # emergency stop: standstill within this time, then drives off
     controlled_stop_s: float = 0.5  # controlled stops and pause: standstill within this time
     pause_hold_s: float = 1.0  # pause holds still this long before washing out to neutral
-    return_min_s: float = 1.0  # shortest return-to-neutral ramp
-    return_speed_m_s: float = 0.05  # peak linear speed of a return to neutral
-    return_rate_rad_s: float = 0.1  # peak angular rate of a return to neutral
-    return_acceleration_m_s2: float = 0.3
-    return_angular_acceleration_rad_s2: float = 0.5
     watchdog_s: float = 0.1  # no heartbeat for this long → controlled stop
     late_ticks_to_stop: int = 10  # this many late ticks in a row → controlled stop
     tracking_error_max_m: float = 0.01  # slider command vs measured position
-    # Normal motion (cue, approach, return) must stay this far inside every limit; stop ramps may use the
-    # margin (they are checked against the robot's own limits), so braking from a limit hit is possible.
-    limit_margin_fraction: float = 0.05
-    stroke_margin_m: float = 0.01
-    # Normal motion keeps this much more clearance between the twin's parts than the robot's own margin.
-    clearance_margin_m: float = 0.02
+
+    error: ClassVar[type[InvalidValueError]] = SupervisorConfigError
 
     def __post_init__(self) -> None:
-        for item in fields(self):
-            value = getattr(self, item.name)
-            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
-                raise SupervisorConfigError(item.name, value, "must be a finite number > 0")
+        super().__post_init__()
         if not isinstance(self.late_ticks_to_stop, int):
             raise SupervisorConfigError("late_ticks_to_stop", self.late_ticks_to_stop, "must be an integer")
         if self.watchdog_s > 1.0:
             raise SupervisorConfigError("watchdog_s", self.watchdog_s, "must be <= 1 s")
-        if self.limit_margin_fraction >= 0.5:
-            raise SupervisorConfigError("limit_margin_fraction", self.limit_margin_fraction, "must be < 0.5")
-        if self.clearance_margin_m > IK_EXACT_BELOW_M:  # the tick screens pairs for breaches that close only
-            raise SupervisorConfigError(
-                "clearance_margin_m", self.clearance_margin_m, f"must be <= {IK_EXACT_BELOW_M} m"
-            )
         if self.estop_ramp_s > 2.0:
             raise SupervisorConfigError("estop_ramp_s", self.estop_ramp_s, "must be <= 2 s")
 

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from core.plan.limits import LimitCode  # the record's `limit_code` holds these numbers
 from server.hal.base import AXIS_COUNT, HalState
 
 
@@ -45,39 +46,6 @@ class StopReason(enum.IntEnum):
     HAL_FAULT = 10
     INTERNAL_ERROR = 11
 
-
-class LimitCode(enum.IntEnum):
-    """Which limit a command broke; the per-tick check and the offline prescription check share it."""
-
-    NONE = 0
-    ROD_REACH = 1
-    STROKE = 2
-    BASE_JOINT_CONE = 3
-    PLATFORM_JOINT_CONE = 4
-    TILT = 5
-    SLIDER_VELOCITY = 6
-    SLIDER_ACCELERATION = 7
-    DRIVE_FORCE = 8
-    SINGULARITY = 9  # offline check only (core.kinematics' condition-number test)
-    COLLISION = 10  # two parts of the twin closer than the clearance margin (core.clearance)
-
-    @property
-    def label(self) -> str:
-        return self.name.lower()
-
-
-LIMIT_UNITS = {
-    LimitCode.ROD_REACH: "m",
-    LimitCode.STROKE: "m",
-    LimitCode.BASE_JOINT_CONE: "rad",
-    LimitCode.PLATFORM_JOINT_CONE: "rad",
-    LimitCode.TILT: "rad",
-    LimitCode.SLIDER_VELOCITY: "m/s",
-    LimitCode.SLIDER_ACCELERATION: "m/s²",
-    LimitCode.DRIVE_FORCE: "N",
-    LimitCode.SINGULARITY: "",
-    LimitCode.COLLISION: "m",
-}
 
 HAL_STATE_CODES = {state: code for code, state in enumerate(HalState)}
 HAL_STATES_BY_CODE = dict(enumerate(HalState))

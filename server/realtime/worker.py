@@ -24,17 +24,13 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
+from core.plan.build import PrescriptionPlan, build_plan
+from core.plan.check import PrescriptionRejected
+from core.plan.prescription import PrescriptionError
 from core.robot import default_twin, load_twin
 from server.hal.backends import make_hal
 from server.realtime.loop import FixedRateLoop, configure_realtime, freeze_garbage_collector
 from server.realtime.pipeline import TickPipeline, compile_tick_path
-from server.realtime.prescription import (
-    PrescriptionError,
-    PrescriptionPlan,
-    PrescriptionRejected,
-    check_plan,
-    plan_prescription,
-)
 from server.realtime.shm import ControlBlock, Seqlock, SharedRing, memory_barrier
 from server.realtime.supervisor import SupervisorConfig, TransitionRefused
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, StopReason, SupervisorState, encode_event
@@ -171,18 +167,18 @@ class Worker:
 
     def _load(self, prescription: dict[str, Any], patient: dict[str, Any] | None) -> dict[str, Any]:
         self.pipeline.supervisor.require("load", *LOAD_STATES)
-        plan = plan_prescription(
-            prescription,
-            self.twin,
-            control_rate_hz=self.config.control_rate_hz,
-            config=self.supervisor_config,
-            patient=patient,
-        )
         try:
-            report = check_plan(plan, self.twin)
-            self.pipeline.load(plan)
+            checked = build_plan(
+                prescription,
+                self.twin,
+                control_rate_hz=self.config.control_rate_hz,
+                config=self.supervisor_config,
+                patient=patient,
+            )
+            report = checked.accepted()
+            self.pipeline.load(checked.plan)
         finally:
-            self.loop.rebase()  # the check took many periods; the drives are off, so nothing was late
+            self.loop.rebase()  # planning and the check took many periods; the drives are off, nothing was late
         self.emit("prescription_checked", report.to_dict())
         return report.to_dict()
 

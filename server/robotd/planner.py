@@ -10,14 +10,10 @@ import threading
 from multiprocessing.connection import Connection
 from typing import Any
 
+from core.plan.build import PrescriptionPlan, build_plan
+from core.plan.check import PrescriptionRejected
+from core.plan.prescription import PrescriptionError
 from core.robot import default_twin, load_twin
-from server.realtime.prescription import (
-    PrescriptionError,
-    PrescriptionPlan,
-    PrescriptionRejected,
-    check_plan,
-    plan_prescription,
-)
 from server.realtime.supervisor import SupervisorConfig
 
 log = logging.getLogger("ssp_rehab.robotd")
@@ -33,11 +29,8 @@ def _planner_entry(twin_path: str | None, control_rate_hz: int, supervisor: dict
         except EOFError:
             return
         try:
-            plan = plan_prescription(
-                prescription, twin, control_rate_hz=control_rate_hz, config=config, patient=patient
-            )
-            report = check_plan(plan, twin).to_dict()
-            link.send(("ok", plan, report))
+            checked = build_plan(prescription, twin, control_rate_hz=control_rate_hz, config=config, patient=patient)
+            link.send(("ok", checked.plan, checked.accepted().to_dict()))
         except PrescriptionRejected as rejected:
             link.send(("rejected", rejected.to_dict(), None))
         except PrescriptionError as error:

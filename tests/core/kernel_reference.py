@@ -15,9 +15,9 @@ import numpy as np
 
 from core.dynamics import InverseDynamics, TwinInverseDynamics
 from core.kinematics import ForwardKinematics, inverse_kinematics, twin_inverse_kinematics
+from core.plan.limits import LimitCode
 from core.robot import RobotPlacement, TwinRobot, paper_robot
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
-from server.realtime.telemetry import LimitCode
 
 TICK_PERIOD_S = 0.001
 

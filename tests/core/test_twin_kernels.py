@@ -1,7 +1,7 @@
 """The compiled twin kernels' violation codes are the codes the telemetry and the supervisor report."""
 
 from core import twin_kernels
-from server.realtime.telemetry import LimitCode
+from core.plan.limits import LimitCode
 
 
 def test_violation_codes_match_the_telemetry_limit_codes() -> None:

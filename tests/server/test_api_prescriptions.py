@@ -17,8 +17,13 @@ def post(client: TestClient, seed: Seed, patient_id: int, segment: dict) -> obje
 
 
 def refused_field(response: object) -> str:
+    """The refused field as the console names it (js/api.js fieldErrors): `segments[0].cue.frequency_hz`,
+    whether the model (`["body", "segments", 0, ...]`) or a robot check (`["body", "segments[0]", ...]`) refused."""
     assert response.status_code == 422, response.text
-    return ".".join(str(part) for part in response.json()["detail"][0]["loc"][1:])
+    path = ""
+    for part in response.json()["detail"][0]["loc"][1:]:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else part)
+    return path
 
 
 def test_a_prescription_is_stored_with_the_default_washout_filled_in(client: TestClient, seed: Seed) -> None:
@@ -59,7 +64,7 @@ def test_limits_may_only_tighten_the_robots_own(client: TestClient, seed: Seed) 
 
 def test_structural_errors_name_the_field(client: TestClient, seed: Seed) -> None:
     patient_id = create_patient(client, seed.headers())
-    assert refused_field(post(client, seed, patient_id, {**SEGMENT, "duration_s": -1})) == "segments.0.duration_s"
+    assert refused_field(post(client, seed, patient_id, {**SEGMENT, "duration_s": -1})) == "segments[0].duration_s"
     empty = client.post(
         "/api/v1/prescriptions", json={"patient_id": patient_id, "name": "P", "segments": []}, headers=seed.headers()
     )

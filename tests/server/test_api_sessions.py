@@ -90,7 +90,7 @@ def test_one_robot_runs_one_session_at_a_time(robot_client: TestClient, seed: Se
 def test_a_refused_prescription_is_a_422_and_leaves_no_run(
     robot_client: TestClient, seed: Seed, fake_worker: FakeWorker
 ) -> None:
-    prescription = pytest.importorskip("server.realtime.prescription")
+    prescription = pytest.importorskip("core.plan.check")
     booked = booked_session(robot_client, seed.headers())
     fake_worker.refuse_with = prescription.PrescriptionRejected(0, 2.5, "tilt_max_rad", 0.31, "tilt over the limit")
     response = robot_client.post(f"/api/v1/sessions/{booked.session_id}/start", headers=seed.headers())

@@ -51,7 +51,8 @@ def test_plan_prints_exactly_the_contract_and_optimal_beats_classical(tmp_path: 
 
 def test_plan_names_a_refused_field_and_an_infeasible_plan_gives_its_reason(tmp_path: Path) -> None:
     path = tmp_path / "bad.json"
-    path.write_text(json.dumps({"segments": [{"cue": {"kind": "sine", "axis": "y"}, "duration_s": 6.0}]}))
+    no_amplitude = {"kind": "sine", "axis": "y", "frequency_hz": 0.5}
+    path.write_text(json.dumps({"segments": [{"cue": no_amplitude, "duration_s": 6.0}]}))
     outcome = runner.invoke(app, ["cueing", "plan", str(path), "--json"])
     assert outcome.exit_code == 2 and "amplitude_m_s2" in json.loads(outcome.stdout)["error"]
     refused = runner.invoke(app, ["cueing", "plan", str(path), "--cueing", "magic", "--json"])

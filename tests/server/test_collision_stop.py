@@ -6,10 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.plan.build import check_prescription
+from core.plan.check import PrescriptionRejected
+from core.plan.limits import LimitCode
 from core.robot import TwinRobot, named_twin, symmetric_placements
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
-from server.realtime.prescription import PrescriptionRejected, check_prescription
-from server.realtime.telemetry import LimitCode, StopReason, SupervisorState
+from server.realtime.telemetry import StopReason, SupervisorState
 from tests.server.test_supervisor import Harness
 
 # Bases staggered by only ±60 mm: clear at neutral (44 mm), but a sway of about 80 mm brings rods 4 (or 3)

@@ -11,10 +11,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.plan.build import plan_prescription
 from core.robot import default_twin
 from server.hal.backends import make_hal
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import plan_prescription
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import StopReason, SupervisorState
 

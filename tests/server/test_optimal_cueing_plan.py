@@ -12,16 +12,12 @@ from core.clearance import min_clearance
 from core.layout import LayoutCandidate
 from core.optimal_cueing import STOP_CLEARANCE_MARGIN_M, CueingWorkspace
 from core.perception import tilt_rate_check
+from core.plan.build import check_prescription, plan_prescription
+from core.plan.check import PrescriptionRejected, check_plan
+from core.plan.prescription import PrescriptionError
 from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import (
-    PrescriptionError,
-    PrescriptionRejected,
-    check_plan,
-    check_prescription,
-    plan_prescription,
-)
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import SupervisorState
 

@@ -47,9 +47,9 @@ def test_a_prescription_is_never_stored_unchecked_when_a_core_validator_is_missi
     result = _run_with_broken(
         core_module,
         """
-        from server.prescriptions.validation import validated_prescription
+        from core.plan.prescription import parse_prescription
         cue = {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.25}
-        validated_prescription([{"cue": cue, "duration_s": 5.0}], limits={})
+        parse_prescription({"segments": [{"cue": cue, "duration_s": 5.0}]})
         print("stored unchecked")
         """,
     )

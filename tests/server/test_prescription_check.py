@@ -8,15 +8,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.plan.build import check_prescription, plan_prescription
+from core.plan.check import PrescriptionRejected
+from core.plan.prescription import PrescriptionError
 from core.robot import TwinRobot
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import (
-    PrescriptionError,
-    PrescriptionRejected,
-    check_prescription,
-    plan_prescription,
-)
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import SupervisorState
 
@@ -95,7 +92,13 @@ def test_the_offline_check_and_the_running_pipeline_agree_on_when_a_limit_is_hit
     [
         ({"segments": []}, "segments"),
         ({"segments": [{**GENTLE, "duration_s": -1.0}]}, "segments[0].duration_s"),
-        ({"segments": [{**GENTLE, "cue": {"kind": "sine", "axis": "x"}}]}, "segments[0].cue.amplitude_m_s2"),
+        ({"segments": [{**GENTLE, "cue": {"kind": "sine", "axis": "x"}}]}, "segments[0].cue.frequency_hz"),
+        (
+            {"segments": [{**GENTLE, "cue": {"kind": "sine", "axis": "x", "frequency_hz": 0.5}}]},
+            "segments[0].cue.amplitude_m_s2",
+        ),
+        ({"segments": [{**GENTLE, "duration_s": 0.5}]}, "segments[0].duration_s"),  # shorter than the soft start
+        ({"segments": [{**GENTLE, "shaping": {"lowpass_cutoff_hz": 9.0}}]}, "segments[0].shaping.lowpass_cutoff_hz"),
         ({"segments": [{**GENTLE, "limits": {"tilt_max_rad": 1.0}}]}, "segments[0].limits.tilt_max_rad"),
         ({"segments": [{**GENTLE, "limits": {"speed": 1.0}}]}, "segments[0].limits.speed"),
         ({"segments": [{**GENTLE, "washout": {"tilt_break_rad_s": -2.0}}]}, "segments[0].washout.tilt_break_rad_s"),

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from core.plan.prescription import PrescriptionBody
 from core.robot import default_twin
 from server.prescriptions.preview import prescription_preview
-from server.prescriptions.validation import robot_limits, validated_prescription
 from server.sessions.balance import foot_origins_m, run_balance
 from tests.server.conftest import Seed, create_patient
 
@@ -18,7 +18,7 @@ SINE = {"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_h
 
 
 def _preview(segments: list[dict], control_rate_hz: int = 250, cueing: str = "classical") -> dict:
-    prescription = validated_prescription(segments, limits=robot_limits(TWIN), cueing=cueing)
+    prescription = PrescriptionBody.model_validate({"segments": segments, "cueing": cueing})
     return prescription_preview(prescription, TWIN, control_rate_hz=control_rate_hz)
 
 

@@ -13,9 +13,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
+from core.plan.prescription import CSV_CUE_MAX_BYTES, PrescriptionError, parse_prescription
 from server.db import Database
-from server.errors import InvalidFieldError
-from server.prescriptions.validation import CSV_CUE_MAX_BYTES, validated_prescription
 from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.journal import RunJournal, read_journal
 from server.robotd.process import AlreadyRunning, daemon_running, take_lock
@@ -127,8 +126,8 @@ def test_a_silent_status_record_reads_as_absent() -> None:
 
 def test_a_csv_cue_over_the_size_limit_is_refused_naming_the_field() -> None:
     segment = {"cue": {"kind": "csv_replay", "csv": "x" * (CSV_CUE_MAX_BYTES + 1)}, "duration_s": 10.0}
-    with pytest.raises(InvalidFieldError) as refused:
-        validated_prescription([segment], limits={})
+    with pytest.raises(PrescriptionError) as refused:
+        parse_prescription({"segments": [segment]})
     assert refused.value.field == "segments[0].cue.csv" and str(CSV_CUE_MAX_BYTES) in refused.value.limit
 
 

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from core.kinematics import twin_inverse_kinematics
+from core.plan.build import plan_prescription
+from core.plan.ramps import PoseRamp
 from core.robot import TwinRobot
 from core.twin_kernels import TwinKernels
 from server.hal.base import DriveState, HalState, HardwareInterface
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import plan_prescription
-from server.realtime.ramps import PoseRamp
 from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, SupervisorConfigError, TransitionRefused
 from server.realtime.telemetry import StopReason, SupervisorState
 
@@ -323,7 +323,7 @@ def test_per_tick_kinematics_match_the_batch_reference(twin: TwinRobot) -> None:
             velocity.copy(),
             np.full(12, -9.0),
             np.full(12, 9.0),
-            np.array([9.0] * 6 + [0.0]),  # the kernel's limits vector (server.realtime.limits.kernel_vector)
+            np.array([9.0] * 6 + [0.0]),  # the kernel's limits vector (core.plan.limits.SessionLimits.kernel_vector)
             sliders,
             velocity,
             acceleration,

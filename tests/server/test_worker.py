@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from core.plan.check import PrescriptionRejected
 from server.realtime.client import WorkerClient
 from server.realtime.loop import FixedRateLoop, LoopConfigError
-from server.realtime.prescription import PrescriptionRejected
 from server.realtime.shm import Seqlock, SharedRing
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict
 

@@ -1,13 +1,14 @@
-"""The limits a session runs under: the robot description's, optionally tightened by the prescription.
+"""The limits a session runs under: the robot description's, optionally tightened by the prescription,
+and the codes that name a broken limit.
 
 A prescription may only tighten a limit; loosening one, or naming one that does not exist, is refused
-with the field, the value and the limit. The per-tick check (`twin_kernels`) and the offline check
-(`prescription`) both read `SessionLimits`, so the two can never disagree on a number.
+with the field, the value and the limit. The per-tick check (`core.twin_kernels`) and the offline check
+(`core.plan.check`) both read `SessionLimits`, so the two can never disagree on a number.
 """
 
 from __future__ import annotations
 
-import math
+import enum
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -20,6 +21,41 @@ from core.robot import MotionLimits, TwinRobot
 
 class LimitOverrideError(InvalidValueError):
     """A prescription limit override that would loosen or break a robot limit."""
+
+
+class LimitCode(enum.IntEnum):
+    """Which limit a command broke; the per-tick check (`core.twin_kernels`, the same numbers) and the
+    offline check share it, and the worker's telemetry carries it."""
+
+    NONE = 0
+    ROD_REACH = 1
+    STROKE = 2
+    BASE_JOINT_CONE = 3
+    PLATFORM_JOINT_CONE = 4
+    TILT = 5
+    SLIDER_VELOCITY = 6
+    SLIDER_ACCELERATION = 7
+    DRIVE_FORCE = 8
+    SINGULARITY = 9  # offline check only (core.kinematics' condition-number test)
+    COLLISION = 10  # two parts of the twin closer than the clearance margin (core.clearance)
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+LIMIT_UNITS = {
+    LimitCode.ROD_REACH: "m",
+    LimitCode.STROKE: "m",
+    LimitCode.BASE_JOINT_CONE: "rad",
+    LimitCode.PLATFORM_JOINT_CONE: "rad",
+    LimitCode.TILT: "rad",
+    LimitCode.SLIDER_VELOCITY: "m/s",
+    LimitCode.SLIDER_ACCELERATION: "m/s²",
+    LimitCode.DRIVE_FORCE: "N",
+    LimitCode.SINGULARITY: "",
+    LimitCode.COLLISION: "m",
+}
 
 
 @dataclass(frozen=True)
@@ -71,21 +107,15 @@ class SessionLimits:
         )
 
 
-def tighten(limits: MotionLimits, overrides: Mapping[str, Any], prefix: str = "limits") -> MotionLimits:
-    """`limits` with each override applied; an override must be a positive number no larger than the
-    robot's own limit."""
-    if not isinstance(overrides, Mapping):
-        raise LimitOverrideError(prefix, overrides, "must be an object of limit overrides")
+def tighten(limits: MotionLimits, overrides: Mapping[str, float], prefix: str = "limits") -> MotionLimits:
+    """`limits` with each override applied. The prescription model has already checked that each override
+    names a limit and is a finite number > 0; this is the robot-dependent part: no larger than the robot's."""
     robot_limits = asdict(limits)
-    changes: dict[str, float] = {}
     for name, value in overrides.items():
         if name not in robot_limits:
             raise LimitOverrideError(f"{prefix}.{name}", value, f"unknown limit; known: {sorted(robot_limits)}")
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
-            raise LimitOverrideError(f"{prefix}.{name}", value, "must be a finite number > 0")
         if value > robot_limits[name]:
             raise LimitOverrideError(
                 f"{prefix}.{name}", value, f"may only tighten the robot's limit of {robot_limits[name]:g}"
             )
-        changes[name] = float(value)
-    return replace(limits, **changes)
+    return replace(limits, **{name: float(value) for name, value in overrides.items()})
