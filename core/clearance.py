@@ -36,6 +36,9 @@ NOTHING_CLOSER = "no pair closer than the reported bound"
 # The twin IK needs the exact clearance only near the margins (the prescription check's stop margin is
 # 20 mm more); farther than this it reports the bound, which lets the kernel skip most pairs.
 IK_EXACT_BELOW_M = 0.10
+# The extra clearance normal motion keeps so that a controlled stop can brake before parts meet (the plan's
+# default `clearance_margin_m`, and the optimal planner's default).
+STOP_CLEARANCE_MARGIN_M = 0.02
 
 
 class PartKind(enum.IntEnum):

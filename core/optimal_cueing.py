@@ -49,7 +49,7 @@ import numpy as np
 import osqp
 import scipy.sparse as sp
 
-from core.clearance import IK_EXACT_BELOW_M, min_clearance
+from core.clearance import IK_EXACT_BELOW_M, STOP_CLEARANCE_MARGIN_M, min_clearance
 from core.errors import refuse_unknown_fields
 from core.kinematics import (
     PoseCollisions,
@@ -65,9 +65,6 @@ from core.vestibular import VestibularModel, VestibularParameters
 
 # Stance poses (N, 6) → minimum collision clearance (N,) m; by default the twin's parts (core.clearance).
 ClearanceFunction = Callable[[np.ndarray], np.ndarray]
-# The extra clearance normal motion keeps so that a controlled stop can brake before parts meet: the
-# default of server.realtime.supervisor.SupervisorConfig.clearance_margin_m (a test keeps them equal).
-STOP_CLEARANCE_MARGIN_M = 0.02
 
 POSITION_SCALE_M = 0.1  # usage is measured in units of the travel budget of one cue
 ANGLE_SCALE_RAD = 0.1

@@ -214,7 +214,9 @@ def _optimal_segments(
     for segment in segments:
         force, angular = segment_cue(segment, period, config)
         limits = segment.motion_limits
-        workspace = CueingWorkspace(twin, limits.motion, limits.stroke_min_m, limits.stroke_max_m)
+        workspace = CueingWorkspace(
+            twin, limits.motion, limits.stroke_min_m, limits.stroke_max_m, clearance_min_m=limits.clearance_min_m
+        )
         plan = OptimalCueingPlanner(workspace, params).plan(force, angular, period)
         planned.append(replace(segment, planned_poses=plan.pose))
     return planned

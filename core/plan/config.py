@@ -9,7 +9,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from core.clearance import IK_EXACT_BELOW_M
+from core.clearance import IK_EXACT_BELOW_M, STOP_CLEARANCE_MARGIN_M
 from core.errors import InvalidValueError
 from core.plan.ramps import return_duration_s
 
@@ -34,7 +34,7 @@ class PlanConfig:
     limit_margin_fraction: float = 0.05
     stroke_margin_m: float = 0.01
     # Normal motion keeps this much more clearance between the twin's parts than the robot's own margin.
-    clearance_margin_m: float = 0.02
+    clearance_margin_m: float = STOP_CLEARANCE_MARGIN_M
 
     error: ClassVar[type[InvalidValueError]] = PlanConfigError  # subclasses refuse with their own kind
 

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from core.clearance import min_clearance
+from core.clearance import STOP_CLEARANCE_MARGIN_M, min_clearance
 from core.layout import LayoutCandidate
-from core.optimal_cueing import STOP_CLEARANCE_MARGIN_M, CueingWorkspace
+from core.optimal_cueing import CueingWorkspace
 from core.perception import tilt_rate_check
 from core.plan.build import check_prescription, plan_prescription
 from core.plan.check import PrescriptionRejected, check_plan
@@ -97,10 +97,22 @@ def test_the_optimal_plan_keeps_the_collision_clearance_the_worker_checks() -> N
     assert np.min(poses[:, 0]) < -0.05 and np.max(poses[:, 0]) > 0.1
 
 
-def test_the_planner_default_clearance_margin_is_the_one_the_offline_check_enforces(twin) -> None:
-    """`CueingWorkspace(twin, limits, stroke_min, stroke_max)` keeps what `check_plan` requires by default."""
-    assert SupervisorConfig().clearance_margin_m == STOP_CLEARANCE_MARGIN_M
-    plan = plan_prescription({"segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}, twin)
-    limits = plan.segments[0].motion_limits
-    workspace = CueingWorkspace(twin, limits.motion, limits.stroke_min_m, limits.stroke_max_m)
-    assert workspace.minimum_clearance_m == pytest.approx(limits.clearance_min_m)
+def test_the_planner_keeps_the_clearance_margin_the_offline_check_enforces(twin, monkeypatch) -> None:
+    """The planner's clearance row uses the segment's own margin, so a non-default stop margin is honoured
+    (and by default it is the one `check_plan` requires)."""
+    workspaces: list[CueingWorkspace] = []
+    original_init = CueingWorkspace.__post_init__
+
+    def recording_init(self: CueingWorkspace) -> None:
+        original_init(self)
+        workspaces.append(self)
+
+    monkeypatch.setattr(CueingWorkspace, "__post_init__", recording_init)
+    body = {"cueing": "optimal", "segments": [{"cue": PAPER_STEP, "duration_s": 14.0}]}
+    for margin_m in (STOP_CLEARANCE_MARGIN_M, 0.035):
+        plan = plan_prescription(body, twin, config=SupervisorConfig(clearance_margin_m=margin_m))
+        required = plan.segments[0].motion_limits.clearance_min_m
+        assert required == pytest.approx(twin.parts.clearance_min_m + margin_m)
+        assert workspaces[-1].minimum_clearance_m == pytest.approx(required)
+
+
