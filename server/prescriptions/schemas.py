@@ -31,7 +31,8 @@ class PrescriptionCreate(PrescriptionBody, RequestModel):
 
 
 class PrescriptionRevise(PrescriptionBody, RequestModel):
-    """A new version: the segments replace the previous version's; earlier versions stay as they were."""
+    """A new version: the segments replace the previous version's; earlier versions stay as they were. A
+    `cueing` or `seed` left out is kept from the current version."""
 
     name: Name | None = None
     note: LongText = ""

@@ -18,6 +18,9 @@ from server.prescriptions.models import Prescription, PrescriptionVersion
 from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise
 
 
+KEPT_ON_REVISION = ("cueing", "seed")
+
+
 def _content(data: PrescriptionBody, twin: TwinRobot, control_rate_hz: int) -> dict[str, Any]:
     """What is stored: the model validated the request; this robot may only tighten its limits (and the
     shaping must hold at its control rate). Refused before any write."""
@@ -84,7 +87,10 @@ def revise_prescription(
     actor_id: int,
 ) -> Prescription:
     prescription = get_prescription(session=session, prescription_id=prescription_id)
-    content = _content(data, twin, control_rate_hz)
+    # A revision that sends only new segments keeps the current cueing algorithm and seed.
+    current = latest(prescription).content
+    kept = {name: current[name] for name in KEPT_ON_REVISION if name not in data.model_fields_set and name in current}
+    content = _content(data.model_copy(update=kept), twin, control_rate_hz)
     prescription.latest_version += 1
     if data.name is not None:
         prescription.name = data.name

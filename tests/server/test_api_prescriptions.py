@@ -90,3 +90,19 @@ def test_editing_creates_a_new_version_and_keeps_the_old_one(client: TestClient,
     assert [v["version"] for v in versions] == [1, 2]
     assert client.get(f"/api/v1/prescriptions/{prescription_id}/versions/3", headers=headers).status_code == 404
     assert client.put("/api/v1/prescriptions/999999", json={"segments": [longer]}, headers=headers).status_code == 404
+
+
+def test_a_revision_that_omits_the_cueing_and_seed_keeps_the_current_ones(client: TestClient, seed: Seed) -> None:
+    """An edit that sends only new segments must not switch an optimal prescription back to classical."""
+    headers = seed.headers()
+    body = {"patient_id": create_patient(client, headers), "name": "P", "segments": [SEGMENT], "cueing": "optimal"}
+    created = client.post("/api/v1/prescriptions", json={**body, "seed": 7}, headers=headers)
+    assert created.status_code == 201, created.text
+    url = f"/api/v1/prescriptions/{created.json()['id']}"
+    kept = client.put(url, json={"segments": [{**SEGMENT, "duration_s": 90.0}]}, headers=headers).json()["current"]
+    assert (kept["content"]["cueing"], kept["content"]["seed"]) == ("optimal", 7)
+    changed = client.put(url, json={"segments": [SEGMENT], "cueing": "classical", "seed": 0}, headers=headers)
+    assert (changed.json()["current"]["content"]["cueing"], changed.json()["current"]["content"]["seed"]) == (
+        "classical",
+        0,
+    )
