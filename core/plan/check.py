@@ -197,7 +197,7 @@ def _check_samples(
         elif code is LimitCode.COLLISION and collisions is not None:
             where = ""
             pair = collisions.pair_names[int(collisions.closest_pair[sample])]
-            detail = f"collision {pair}: clearance {value * 1e3:.1f} mm against the margin {limit_value * 1e3:.1f} mm"
+            detail = f"collision {pair}: clearance {value * 1e3:.2f} mm against the margin {limit_value * 1e3:.2f} mm"
         elif code is LimitCode.ROD_REACH:
             detail = "a rod could not reach its rail"
         else:
