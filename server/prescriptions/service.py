@@ -17,7 +17,6 @@ from server.patients.service import find_patient
 from server.prescriptions.models import Prescription, PrescriptionVersion
 from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise
 
-
 KEPT_ON_REVISION = ("cueing", "seed")
 
 

@@ -114,5 +114,3 @@ def test_the_planner_keeps_the_clearance_margin_the_offline_check_enforces(twin,
         required = plan.segments[0].motion_limits.clearance_min_m
         assert required == pytest.approx(twin.parts.clearance_min_m + margin_m)
         assert workspaces[-1].minimum_clearance_m == pytest.approx(required)
-
-
