@@ -137,9 +137,10 @@ class PatientParameters:
 
     @classmethod
     def preset(cls, name: str, body_mass_kg: float, height_m: float, **overrides: Any) -> PatientParameters:
-        """ "healthy": Peterka's (2002) young-adult fit. "impaired": longer delay, lower gains, more
-        noise, weaker ankles and a vestibular deficit (proprioception weighted up, as after bilateral
-        vestibular loss), so that it copes with quiet stance but not with large perturbations."""
+        """ "healthy": Peterka's (2002) young-adult fit. "impaired": longer delay, a lower stiffness, more
+        noise, weaker ankles, weaker hips and more reliance on the surface (proprioception weighted up), so
+        that it copes with quiet stance and training sines but not with large perturbations. Its damping
+        rises with its delay so that its closed loop keeps a margin like a person's (docs/falls.md)."""
         if name not in PRESETS:
             raise ParameterError("preset", name, f"must be one of {sorted(PRESETS)}")
         return cls(body_mass_kg=body_mass_kg, height_m=height_m, preset_name=name, **{**PRESETS[name], **overrides})
@@ -225,12 +226,17 @@ class PatientParameters:
 
 PRESETS: dict[str, dict[str, float]] = {
     "healthy": {},
+    # Gains within the identified ranges of healthy adults (Kp 1.33–1.55·mgh, Kd 0.51–0.87·mgh·s: Pasma et
+    # al. 2017 JNER 14:97 Table 3; Engelhart/Pasma-group model, PMC5664365 Table 1) and passive stiffness at
+    # Loram et al.'s (2007, J Physiol 584:661) long-range 13 % of mgh. The former preset (Kp 1.2, Kd 0.3,
+    # passive 0.1, W 0.6) had a closed-loop resonance at 0.31 Hz (sway/tilt gain 6.3, sensitivity peak 7):
+    # the washout's ±1.2° pitch of a 0.03 g, 0.25 Hz training sine toppled it (issue 16 §11).
     "impaired": {
         "feedback_delay_s": 0.2,
-        "proportional_gain_per_mgh": 1.2,
-        "derivative_gain_per_mgh_s": 0.3,
-        "passive_stiffness_per_mgh": 0.1,
-        "proprioceptive_weight": 0.6,
+        "proportional_gain_per_mgh": 1.3,
+        "derivative_gain_per_mgh_s": 0.5,
+        "passive_stiffness_per_mgh": 0.13,
+        "proprioceptive_weight": 0.5,
         "sensory_noise_rad": 0.003,
         "motor_noise_per_mgh": 0.006,
         "ankle_torque_max_n_m_per_kg": 1.2,

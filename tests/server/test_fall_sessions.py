@@ -96,6 +96,25 @@ def test_a_half_m_s2_x_sine_session_completes_without_a_fall(backend: str, body_
     assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, pipeline.supervisor.stop_reason
 
 
+SINE_X_SLOW = {"kind": "sine", "axis": "x", "amplitude_m_s2": 0.3, "frequency_hz": 0.25}
+
+
+@pytest.mark.parametrize(
+    ("body_mass_kg", "height_m", "seed"),
+    # The impaired patients of `bench falls` whose 0.3 m/s² 0.25 Hz sessions ended as real falls 3-7 s in.
+    [(65.4, 1.665, 5), (99.2, 1.778, 8), (72.7, 1.822, 11)],
+)
+def test_an_impaired_patient_completes_a_slow_training_sine(body_mass_kg: float, height_m: float, seed: int) -> None:
+    """Issue 16 §11: no normal training session ends as a fall. A 0.03 g sine at 0.25 Hz, which the washout
+    plays as a ±1.2° pitch, is what a patient with impaired balance trains at in the harness."""
+    patient = {"body_mass_kg": body_mass_kg, "height_m": height_m, "preset": "impaired", "seed": seed}
+    pipeline, events, _ = run_session("kinematic", patient, SINE_X_SLOW, 20.0)
+    falls = [details for _, kind, _, details in events if kind == "fall"]
+    assert not falls, f"the session ended as a fall: {falls[0]}"
+    assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, pipeline.supervisor.stop_reason
+    assert pipeline.hal._patient is not None and not pipeline.hal._patient.fallen  # nor a fall the detector missed
+
+
 class SteppedClock:
     """perf_counter_ns for a pipeline ticked by the test: it advances one period per tick, or two when the
     loop skipped a deadline, so that ticks × period and the true clock part as they do on a loaded worker."""
