@@ -119,6 +119,11 @@ class PatientParameters:
     # Brain Res 93:352, on stance on a sinusoidally translating platform).
     acceleration_feedforward_gain: float = 1.0
     acceleration_feedforward_delay_s: float = 0.0
+    # The feedforward torque is made by muscles: activation dynamics, a critically damped second-order
+    # low-pass at 16.8 rad/s (Mugge et al. 2010, relative damping 0.99; used by Pasma et al. 2017), whose lag
+    # the anticipation of a predictable cue makes up. Without it the torque followed the support's
+    # acceleration up to any frequency: on the MuJoCo backend a 120 kg patient rang with the structure at 89 Hz.
+    muscle_activation_frequency_hz: float = 2.67
     hip_torque_max_n_m_per_kg: float = 0.5  # the hip strategy's moment (Horak & Nashner 1986); size ours
     # Once the extrapolated COM leaves the feet: a step, a grab of the rail, or neither (the harness
     # catches); the shares and times are ours, after Maki & McIlroy (1997).
@@ -167,6 +172,7 @@ class PatientParameters:
         require_in_range("harness_damping_n_s_m", self.harness_damping_n_s_m, 0.0, 1e5)
         require_in_range("acceleration_feedforward_gain", self.acceleration_feedforward_gain, 0.0, 1.5)
         require_in_range("acceleration_feedforward_delay_s", self.acceleration_feedforward_delay_s, 0.0, 0.5)
+        require_in_range("muscle_activation_frequency_hz", self.muscle_activation_frequency_hz, 0.5, 50.0)
         require_in_range("hip_torque_max_n_m_per_kg", self.hip_torque_max_n_m_per_kg, 0.0, 5.0)
         require_in_range("step_probability", self.step_probability, 0.0, 1.0)
         require_in_range("grab_probability", self.grab_probability, 0.0, 1.0 - self.step_probability)
@@ -295,8 +301,9 @@ PRESETS: dict[str, dict[str, float]] = {
     P_RESCUE_K,
     P_RESCUE_C,
     P_HIP_MAX,
+    P_ACTIVATION_OMEGA,
     P_SIZE,
-) = range(43)
+) = range(44)
 
 # state vector
 (
@@ -326,8 +333,12 @@ PRESETS: dict[str, dict[str, float]] = {
     S_STEP_FOOT,  # 0 right, 1 left
     S_DROP,  # vertical sag of the body (m, down positive) when the legs give way
     S_DROP_RATE,
+    S_FF_TORQUE_AP,  # the feedforward's activation dynamics: two states per plane (canonical form)
+    S_FF_TORQUE_RATE_AP,
+    S_FF_TORQUE_ML,
+    S_FF_TORQUE_RATE_ML,
     S_SIZE,
-) = range(27)
+) = range(31)
 
 # What the patient does once the extrapolated COM has left the base of support.
 RESPONSE_NONE, RESPONSE_STEP, RESPONSE_GRAB, RESPONSE_CATCH = 0, 1, 2, 3
@@ -481,8 +492,27 @@ def _patient_step(
         # Delayed PD on the sensed angle, plus the feedforward that cancels a share of the support's
         # inertial torque m·h·a (the automatic postural response to a sensed support acceleration).
         inertial_gain = p[P_FF_GAIN] * mass * height
-        active_ap = p[P_KP] * delayed_ap + p[P_KD] * delayed_rate_ap - inertial_gain * sensed_support_ax
-        active_ml = p[P_KP] * delayed_ml + p[P_KD] * delayed_rate_ml - inertial_gain * sensed_support_ay
+        # The muscles' activation dynamics, critically damped at ω, with the anticipation's lead (1 + 2s/ω)
+        # that times a predictable cue's torque: ω²(1 + 2s/ω)/(s + ω)². Below 1 Hz it passes the push within
+        # 4 % and 1°; at 89 Hz it passes 6 %. Canonical form: x1' = x2, x2' = u − ω²x1 − 2ωx2,
+        # torque = ω²x1 + 2ωx2 (semi-implicit Euler).
+        omega_act = p[P_ACTIVATION_OMEGA]
+        feedforward_ap = feedforward_ml = 0.0
+        for state_index, drive in (
+            (S_FF_TORQUE_AP, -inertial_gain * sensed_support_ax),
+            (S_FF_TORQUE_ML, -inertial_gain * sensed_support_ay),
+        ):
+            s[state_index + 1] += (
+                drive - omega_act * omega_act * s[state_index] - 2.0 * omega_act * s[state_index + 1]
+            ) * dt
+            s[state_index] += s[state_index + 1] * dt
+            torque = omega_act * omega_act * s[state_index] + 2.0 * omega_act * s[state_index + 1]
+            if state_index == S_FF_TORQUE_AP:
+                feedforward_ap = torque
+            else:
+                feedforward_ml = torque
+        active_ap = p[P_KP] * delayed_ap + p[P_KD] * delayed_rate_ap + feedforward_ap
+        active_ml = p[P_KP] * delayed_ml + p[P_KD] * delayed_rate_ml + feedforward_ml
         torque_max = p[P_TORQUE_MAX]
         torque_ap = _clamp(active_ap, -torque_max, torque_max)
         torque_ml = _clamp(active_ml, -torque_max, torque_max)
@@ -732,6 +762,7 @@ def _parameter_vector(params: PatientParameters, sample_period_s: float) -> np.n
     vector[P_RESCUE_K] = RESCUE_STIFFNESS_PER_MGH * mgh
     vector[P_RESCUE_C] = RESCUE_DAMPING_PER_MGH_S * mgh
     vector[P_HIP_MAX] = params.hip_torque_max_n_m_per_kg * params.body_mass_kg
+    vector[P_ACTIVATION_OMEGA] = 2.0 * math.pi * params.muscle_activation_frequency_hz
     return vector
 
 

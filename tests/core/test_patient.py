@@ -268,3 +268,17 @@ def test_support_motion_shapes_a_tilt_pulse_that_returns_to_level() -> None:
     # The angular velocity integrates to the tilt.
     integrated = np.cumsum(motion.angular_velocity_rad_s[:, 0]) * PERIOD_S
     assert np.max(np.abs(integrated - roll)) < 2e-3
+
+
+def test_the_feedforward_torque_does_not_follow_a_structural_vibration() -> None:
+    """Muscles cannot make torque at 90 Hz. The feedforward that cancels the support's inertial push went
+    straight from the sensed acceleration to the ankle torque, so the COP followed a platform vibration; on
+    the MuJoCo backend that closed a loop with the structure and a 120 kg patient rang at 89 Hz."""
+    params = healthy(plate_cop_noise_m=0.0, sensory_noise_rad=0.0, motor_noise_per_mgh=0.0)
+    time_s = np.arange(1, 4001) * PERIOD_S
+    acceleration = np.zeros((time_s.size, 3))
+    acceleration[:, 0] = 1.0 * np.sin(2 * math.pi * 90.0 * time_s)  # m/s², as the finite-differenced plate
+    trial = simulate(params, PERIOD_S, 0, acceleration, np.zeros((time_s.size, 2)), np.zeros((time_s.size, 3)))
+    cop_x = trial.plate_cop_m[2000:, 0, 0]
+    # A torque following m·h·a would swing the COP by h·a/g ≈ ±95 mm (to the edges of the foot).
+    assert np.ptp(cop_x) < 0.015, f"COP swings {1e3 * np.ptp(cop_x):.0f} mm peak to peak"
