@@ -42,7 +42,7 @@ from server.hal.base import (
 )
 from server.realtime.limits import SessionLimits
 from server.realtime.loop import LATE_THRESHOLD_NS
-from server.realtime.prescription import PrescriptionPlan, SegmentPlan
+from server.realtime.prescription import PrescriptionError, PrescriptionPlan, SegmentPlan
 from server.realtime.ramps import PoseRamp, cue_gain, return_duration_s, smoothstep5, start_velocity
 from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, TransitionRefused
 from server.realtime.telemetry import (
@@ -165,6 +165,14 @@ class TickPipeline:
     def load(self, plan: PrescriptionPlan) -> None:
         """Take a checked plan: build every segment's streaming objects now, with the drives off."""
         self.supervisor.require("load", SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
+        if plan.patient is not None and not self.hal.measures_patient_loads:
+            # The fall detectors would read an empty platform: every session would end as a fall at once.
+            raise PrescriptionError(
+                "patient",
+                f"{plan.patient.body_mass_kg} kg",
+                f"the {type(self.hal).__name__} backend reads no force plates or harness load cell, so no fall "
+                "could be detected: load the prescription without a patient, or on a backend that measures them",
+            )
         segments = [_SegmentRuntime(segment, self.period_s) for segment in plan.segments]
         payload = plan.patient.payload() if plan.patient else None
         self.dynamics = TwinInverseDynamics(self.twin, payload)

@@ -6,6 +6,7 @@ patients on every simulated backend. The session runs at a reduced duration (the
 
 from __future__ import annotations
 
+import uuid
 from typing import Any
 
 import numpy as np
@@ -13,30 +14,43 @@ import pytest
 
 from core.robot import default_twin
 from server.hal.backends import make_hal
+from server.hal.base import HalState
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import plan_prescription
+from server.realtime.prescription import PrescriptionError, plan_prescription
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import StopReason, SupervisorState
+from tests.server.canopen_fixtures import brisk_configuration, no_leaked_threads  # noqa: F401 (autouse fixture)
 
 RATE_HZ = 1000
+RATE_HZ_OF = {"canopen": 500}  # a 2 ms cycle, as the CANopen conformance tests run the virtual bus
 SINE_X = {"kind": "sine", "axis": "x", "amplitude_m_s2": 0.5, "frequency_hz": 0.5}
 
 
+def backend_options(backend: str) -> dict[str, Any]:
+    if backend == "kinematic":
+        return {"communication_timeout_s": 1e6}
+    if backend == "canopen":
+        # Twelve simulated CiA 402 drives on python-can's virtual bus, a channel of the test's own.
+        channel = f"ssp-fall-sessions-{uuid.uuid4().hex[:10]}"
+        return {"interface": "virtual", "channel": channel, "configuration": brisk_configuration(), "simulate": 12}
+    return {}
+
+
 def loaded_pipeline(
-    backend: str, patient: dict[str, Any], cue: dict[str, Any], duration_s: float, emit: Any
+    backend: str, patient: dict[str, Any] | None, cue: dict[str, Any], duration_s: float, emit: Any
 ) -> TickPipeline:
     """A pipeline on `backend` with a one-segment prescription for `patient` loaded, drives still off."""
     twin = default_twin()
     config = SupervisorConfig()
-    options = {"communication_timeout_s": 1e6} if backend == "kinematic" else {}
-    hal = make_hal(backend, twin, 1.0 / RATE_HZ, **options)
+    rate_hz = RATE_HZ_OF.get(backend, RATE_HZ)
+    hal = make_hal(backend, twin, 1.0 / rate_hz, **backend_options(backend))
     hal.configure()
     hal.home()
-    pipeline = TickPipeline(twin, hal, RATE_HZ, config, emit)
+    pipeline = TickPipeline(twin, hal, rate_hz, config, emit)
     plan = plan_prescription(
         {"segments": [{"cue": cue, "duration_s": duration_s}]},
         twin,
-        control_rate_hz=RATE_HZ,
+        control_rate_hz=rate_hz,
         config=config,
         patient=patient,
     )
@@ -46,7 +60,7 @@ def loaded_pipeline(
 
 
 def run_session(
-    backend: str, patient: dict[str, Any], cue: dict[str, Any], duration_s: float, skip_every: int = 0
+    backend: str, patient: dict[str, Any] | None, cue: dict[str, Any], duration_s: float, skip_every: int = 0
 ) -> tuple[TickPipeline, list[tuple[int, str, str | None, dict[str, Any]]], np.ndarray]:
     """Tick a pipeline until the drives are off; `skip_every` > 0 drops every n-th period (a late worker)."""
     events: list[tuple[int, str, str | None, dict[str, Any]]] = []
@@ -59,12 +73,15 @@ def run_session(
     built.append(pipeline)
     pipeline.start()
     session_times = []
-    for tick in range(round((duration_s + 30.0) * RATE_HZ)):
+    rate_hz = pipeline.control_rate_hz
+    for tick in range(round((duration_s + 30.0) * rate_hz)):
         pipeline.heartbeat()
         lateness_ns = 0
         if skip_every and tick % skip_every == skip_every - 1:
-            lateness_ns = round(1e9 / RATE_HZ)  # one period late: the loop skipped a deadline
+            lateness_ns = round(1e9 / rate_hz)  # one period late: the loop skipped a deadline
         pipeline.tick(lateness_ns)
+        # Lock-step on a bus: this cycle's answers are in before the next tick reads (an event, generous).
+        assert pipeline.hal.wait_for_feedback(10.0) or pipeline.hal.state is not HalState.ACTIVE
         session_times.append(float(pipeline.record["session_time_s"][0]))
         if not pipeline.supervisor.drives_enabled and pipeline.supervisor.state is not SupervisorState.RUNNING:
             break
@@ -85,7 +102,42 @@ def test_a_half_m_s2_x_sine_session_completes_without_a_fall(backend: str, body_
     pipeline, events, _ = run_session(backend, {"body_mass_kg": body_mass_kg, "height_m": 1.75}, SINE_X, 12.0)
     falls = [details for _, kind, _, details in events if kind == "fall"]
     assert not falls, f"{backend}, {body_mass_kg} kg: the session ended as a fall: {falls[0]}"
-    assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, pipeline.supervisor.stop_reason
+    faults = [details.get("error", details) for _, kind, _, details in events if kind == "fault"]
+    assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, (pipeline.supervisor.stop_reason, faults)
+
+
+def test_a_half_m_s2_x_sine_session_completes_on_the_canopen_drives() -> None:
+    """Issue 16: on every backend. The canopen backend is python-canopen against twelve simulated CiA 402
+    drives; it reads no force plates, so the session runs without a patient (see the next test). Its homing
+    ended with the sliders at the inner stroke ends, which no platform pose reaches: the first tick's
+    forward kinematics failed and no session could start (the drives file now homes at neutral)."""
+    pipeline, events, _ = run_session("canopen", None, SINE_X, 12.0)
+    faults = [details.get("error", details) for _, kind, _, details in events if kind == "fault"]
+    assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, (pipeline.supervisor.stop_reason, faults)
+    assert not [details for _, kind, _, details in events if kind == "fall"]
+
+
+def test_a_patient_is_refused_on_a_backend_that_reads_no_force_plates() -> None:
+    """With a patient, the fall detectors read the canopen backend's empty plates as a fall at once (the
+    fused detector's unloading evidence 3.3, 0.1 s into the session). Refused at load, before any motion."""
+    twin = default_twin()
+    hal = make_hal("canopen", twin, 1.0 / RATE_HZ_OF["canopen"], **backend_options("canopen"))
+    try:
+        hal.configure()
+        pipeline = TickPipeline(twin, hal, RATE_HZ_OF["canopen"], SupervisorConfig(), lambda *_: None)
+        plan = plan_prescription(
+            {"segments": [{"cue": SINE_X, "duration_s": 12.0}]},
+            twin,
+            control_rate_hz=RATE_HZ_OF["canopen"],
+            config=SupervisorConfig(),
+            patient={"body_mass_kg": 64.0, "height_m": 1.75},
+        )
+        with pytest.raises(PrescriptionError, match="reads no force plates or harness load cell") as refused:
+            pipeline.load(plan)
+        assert refused.value.field == "patient" and "64.0 kg" in str(refused.value.value)
+        assert pipeline.supervisor.state is SupervisorState.IDLE and hal.state is HalState.CONFIGURED
+    finally:
+        hal.shutdown()
 
 
 SINE_X_SLOW = {"kind": "sine", "axis": "x", "amplitude_m_s2": 0.3, "frequency_hz": 0.25}
