@@ -65,7 +65,9 @@ class TwinSimulator:
         self._plate_bodies = np.array([self.model.body(f"{s}_foot_plate").id for s in twin.sides])
         self._plate_wrenches = np.zeros((2, 6))
         self._load_bodies = (
-            np.array([self.model.body(f"{s}_patient_load").id for s in twin.sides]) if self.patient is not None else None
+            np.array([self.model.body(f"{s}_patient_load").id for s in twin.sides])
+            if self.patient is not None
+            else None
         )
         self._load_masses = np.zeros(2)
         self._positions = np.zeros(12)
