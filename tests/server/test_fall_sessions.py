@@ -1,7 +1,9 @@
-"""Whole sessions through the worker's tick pipeline with the simulated patient (issue 16 defects 3 and 4).
+"""Whole sessions through the worker's tick pipeline (issue 16 defects 3 and 4, Tests, §11).
 
-A 0.5 m/s² x-axis sine is ordinary training: it must end `completed`, not as a fall, for light and heavy
-patients on every simulated backend. The session runs at a reduced duration (the defect showed ~3 s in).
+A 0.5 m/s² x-axis sine is ordinary training: it must end `completed`, not as a fall, on every backend: for
+light and heavy simulated patients on `kinematic` and `sim`, and on `canopen` (python-canopen against
+simulated CiA 402 drives), which reads no force plates and so runs it without a patient. Sessions run at a
+reduced duration (the defect showed ~3 s in). Waits on the bus are event-based (no timing thresholds).
 """
 
 from __future__ import annotations
