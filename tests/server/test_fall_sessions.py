@@ -2,8 +2,9 @@
 
 A 0.5 m/s² x-axis sine is ordinary training: it must end `completed`, not as a fall, on every backend: for
 light and heavy simulated patients on `kinematic` and `sim`, and on `canopen` (python-canopen against
-simulated CiA 402 drives), which reads no force plates and so runs it without a patient. Sessions run at a
-reduced duration (the defect showed ~3 s in). Waits on the bus are event-based (no timing thresholds).
+simulated CiA 402 drives), with and without a patient: it reads no force plates, so its falls are not
+detected automatically and the run says so. Sessions run at a reduced duration (the defect showed ~3 s
+in). Waits on the bus are event-based (no timing thresholds).
 """
 
 from __future__ import annotations
@@ -18,9 +19,9 @@ from core.robot import default_twin
 from server.hal.backends import make_hal
 from server.hal.base import HalState
 from server.realtime.pipeline import TickPipeline
-from server.realtime.prescription import PrescriptionError, plan_prescription
+from server.realtime.prescription import plan_prescription
 from server.realtime.supervisor import SupervisorConfig
-from server.realtime.telemetry import StopReason, SupervisorState
+from server.realtime.telemetry import StopReason, SupervisorState, state_dict
 from tests.server.canopen_fixtures import brisk_configuration, no_leaked_threads  # noqa: F401 (autouse fixture)
 
 RATE_HZ = 1000
@@ -46,17 +47,21 @@ def loaded_pipeline(
     config = SupervisorConfig()
     rate_hz = RATE_HZ_OF.get(backend, RATE_HZ)
     hal = make_hal(backend, twin, 1.0 / rate_hz, **backend_options(backend))
-    hal.configure()
-    hal.home()
-    pipeline = TickPipeline(twin, hal, rate_hz, config, emit)
-    plan = plan_prescription(
-        {"segments": [{"cue": cue, "duration_s": duration_s}]},
-        twin,
-        control_rate_hz=rate_hz,
-        config=config,
-        patient=patient,
-    )
-    pipeline.load(plan)
+    try:
+        hal.configure()
+        hal.home()
+        pipeline = TickPipeline(twin, hal, rate_hz, config, emit)
+        plan = plan_prescription(
+            {"segments": [{"cue": cue, "duration_s": duration_s}]},
+            twin,
+            control_rate_hz=rate_hz,
+            config=config,
+            patient=patient,
+        )
+        pipeline.load(plan)
+    except BaseException:
+        hal.shutdown()  # a refused load leaves no bus threads behind
+        raise
     pipeline.heartbeat()
     return pipeline
 
@@ -110,36 +115,51 @@ def test_a_half_m_s2_x_sine_session_completes_without_a_fall(backend: str, body_
 
 def test_a_half_m_s2_x_sine_session_completes_on_the_canopen_drives() -> None:
     """Issue 16: on every backend. The canopen backend is python-canopen against twelve simulated CiA 402
-    drives; it reads no force plates, so the session runs without a patient (see the next test). Its homing
-    ended with the sliders at the inner stroke ends, which no platform pose reaches: the first tick's
-    forward kinematics failed and no session could start (the drives file now homes at neutral)."""
+    drives. Its homing ended with the sliders at the inner stroke ends, which no platform pose reaches: the
+    first tick's forward kinematics failed and no session could start (the drives file now homes at neutral)."""
     pipeline, events, _ = run_session("canopen", None, SINE_X, 12.0)
     faults = [details.get("error", details) for _, kind, _, details in events if kind == "fault"]
     assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, (pipeline.supervisor.stop_reason, faults)
     assert not [details for _, kind, _, details in events if kind == "fall"]
 
 
-def test_a_patient_is_refused_on_a_backend_that_reads_no_force_plates() -> None:
-    """With a patient, the fall detectors read the canopen backend's empty plates as a fall at once (the
-    fused detector's unloading evidence 3.3, 0.1 s into the session). Refused at load, before any motion."""
-    twin = default_twin()
-    hal = make_hal("canopen", twin, 1.0 / RATE_HZ_OF["canopen"], **backend_options("canopen"))
-    try:
-        hal.configure()
-        pipeline = TickPipeline(twin, hal, RATE_HZ_OF["canopen"], SupervisorConfig(), lambda *_: None)
-        plan = plan_prescription(
-            {"segments": [{"cue": SINE_X, "duration_s": 12.0}]},
-            twin,
-            control_rate_hz=RATE_HZ_OF["canopen"],
-            config=SupervisorConfig(),
-            patient={"body_mass_kg": 64.0, "height_m": 1.75},
-        )
-        with pytest.raises(PrescriptionError, match="reads no force plates or harness load cell") as refused:
-            pipeline.load(plan)
-        assert refused.value.field == "patient" and "64.0 kg" in str(refused.value.value)
-        assert pipeline.supervisor.state is SupervisorState.IDLE and hal.state is HalState.CONFIGURED
-    finally:
-        hal.shutdown()
+def test_a_patient_session_completes_on_a_backend_that_reads_no_force_plates() -> None:
+    """The console passes the patient for every session (payload, drive-force limits, detector thresholds).
+    On canopen, which reads no force plates or harness load cell, the detectors read the empty plates as a
+    fall 0.1 s in (the fused detector's unloading evidence 3.3). The session must still run for the patient:
+    the drive forces carry the patient's mass, no detector runs on signals the backend does not measure,
+    the run says so once at its start, and the telemetry carries the flag the console shows."""
+    patient = {"body_mass_kg": 64.0, "height_m": 1.75}
+    pipeline, events, _ = run_session("canopen", patient, SINE_X, 12.0)
+    faults = [details.get("error", details) for _, kind, _, details in events if kind == "fault"]
+    assert pipeline.supervisor.stop_reason is StopReason.COMPLETED, (pipeline.supervisor.stop_reason, faults)
+    assert not [details for _, kind, _, details in events if kind == "fall"]
+    # The drives carry the patient: the inverse dynamics' payload is the patient's whole body.
+    assert pipeline.dynamics.payload.mass_kg == pytest.approx(64.0)
+    unavailable = [(tick, details) for tick, kind, _, details in events if kind == "fall_detection_unavailable"]
+    assert len(unavailable) == 1, unavailable
+    tick, details = unavailable[0]
+    assert details["session_time_s"] == 0.0 and tick <= 0, unavailable  # at the start, before the first tick
+    assert "reads no force plates or harness load cell" in details["reason"], details
+    assert "falls are not detected automatically" in details["reason"], details
+    assert details["detectors_off"] == ["harness_load", "fused"], details  # the console's defaults
+    assert bool(pipeline.record["fall_detection_unavailable"][0])
+    assert state_dict(pipeline.record[0])["fall_detection_unavailable"] is True
+
+
+@pytest.mark.parametrize("backend", ["kinematic", "sim"])
+def test_backends_that_read_the_plates_run_the_detectors_and_say_nothing(backend: str) -> None:
+    """The flag and the event are for backends without plates only; the others keep every detector on."""
+    events: list[tuple[str, dict[str, Any]]] = []
+    pipeline = loaded_pipeline(
+        backend, {"body_mass_kg": 64.0, "height_m": 1.75}, SINE_X, 1.0, lambda k, d, _: events.append((k, d))
+    )
+    pipeline.start()
+    assert pipeline.fall_monitor is not None and pipeline.fall_monitor.detectors
+    assert not [details for kind, details in events if kind == "fall_detection_unavailable"]
+    pipeline.tick(0)
+    assert not bool(pipeline.record["fall_detection_unavailable"][0])
+    pipeline.hal.shutdown()
 
 
 SINE_X_SLOW = {"kind": "sine", "axis": "x", "amplitude_m_s2": 0.3, "frequency_hz": 0.25}
