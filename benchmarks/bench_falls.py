@@ -47,6 +47,14 @@ FALSE_ALARMS_TARGET_PER_H = 1.0
 # (name, seed, patients, session length s, impaired share): tuned on the first, scored on the others.
 TRAINING_COHORT = ("training", 1, 60, 60.0, 0.5)
 HELD_OUT_COHORTS = (("held-out A", 2, 80, 90.0, 0.3), ("held-out B", 3, 80, 120.0, 0.8))
+# The impaired preset's gains before issue 16 §11 (closed-loop resonance at 0.31 Hz): the baseline that the
+# normal training sessions are also played with, in the same run, on its impaired patients.
+FORMER_IMPAIRED_GAINS = {
+    "proportional_gain_per_mgh": 1.2,
+    "derivative_gain_per_mgh_s": 0.3,
+    "passive_stiffness_per_mgh": 0.1,
+    "proprioceptive_weight": 0.6,
+}
 NORMAL_CUES = (
     {"kind": "sine", "axis": "x", "amplitude_m_s2": 0.5, "frequency_hz": 0.5},
     {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.5, "frequency_hz": 0.5},
@@ -92,8 +100,12 @@ def _merged(config: FallDetectorConfig, overrides: dict[str, Any]) -> dict[str, 
     return data
 
 
-def normal_sessions(count: int, duration_s: float) -> dict[str, Any]:
-    """Training sines on random patients, played through the worker's tick pipeline on the kinematic HAL."""
+def normal_sessions(
+    count: int, duration_s: float, *, impaired_overrides: dict[str, float] | None = None, impaired_only: bool = False
+) -> dict[str, Any]:
+    """Training sines on random patients, played through the worker's tick pipeline on the kinematic HAL;
+    `impaired_overrides` change the impaired patients' parameters (the baseline), `impaired_only` skips the
+    healthy ones (the same patients, seeds and cues either way)."""
     from core.plan.build import plan_prescription
     from core.robot import default_twin
     from server.hal.kinematic import KinematicHal
@@ -108,18 +120,21 @@ def normal_sessions(count: int, duration_s: float) -> dict[str, Any]:
     for index in range(count):
         params = random_patient(rng, impaired_share=0.5)
         cue = NORMAL_CUES[index % len(NORMAL_CUES)]
+        if impaired_only and params.preset_name != "impaired":
+            continue
         hal = KinematicHal(twin, PERIOD_S, communication_timeout_s=1e6)
         hal.configure()
         hal.home()
         pipeline = TickPipeline(twin, hal, rate_hz, config, lambda *_: None)
         patient = {"body_mass_kg": params.body_mass_kg, "height_m": params.height_m, "preset": params.preset_name}
+        overrides = impaired_overrides if impaired_overrides and params.preset_name == "impaired" else {}
         pipeline.load(
             plan_prescription(
                 {"segments": [{"cue": cue, "duration_s": duration_s}]},
                 twin,
                 control_rate_hz=rate_hz,
                 config=config,
-                patient={**patient, "seed": index},
+                patient={**patient, "seed": index, **overrides},
             )
         )
         pipeline.heartbeat()
@@ -138,7 +153,7 @@ def normal_sessions(count: int, duration_s: float) -> dict[str, Any]:
             truth = hal._patient is not None and hal._patient.fallen
             ended_as_fall.append({**patient, "cue": cue, "patient_lost_balance": bool(truth)})
     return {
-        "sessions": count,
+        "sessions": sum(sum(by.values()) for by in outcomes.values()),
         "duration_s": duration_s,
         "outcomes_by_preset": outcomes,
         "ended_as_fall": ended_as_fall,
@@ -166,6 +181,9 @@ def detection(*, quick: bool) -> dict[str, Any]:
         }
     tuned_scores = [cohort_scores["tuned"][FUSED] for cohort_scores in held_out.values()]
     normal = normal_sessions(4 if quick else 18, 20.0 if quick else 40.0)
+    former = normal_sessions(
+        4 if quick else 18, 20.0 if quick else 40.0, impaired_overrides=FORMER_IMPAIRED_GAINS, impaired_only=True
+    )
     return {
         "training": {
             "seed": TRAINING_COHORT[1],
@@ -177,6 +195,7 @@ def detection(*, quick: bool) -> dict[str, Any]:
         },
         "held_out": held_out,
         "normal_training_sessions": normal,
+        "normal_training_sessions_baseline": {"impaired_gains": FORMER_IMPAIRED_GAINS, **former},
         "target": f"fused on every held-out cohort: sensitivity >= {SENSITIVITY_TARGET}, "
         f"<= {FALSE_ALARMS_TARGET_PER_H} false alarm/h; no normal session ending as a fall",
         "sensitivity_met": all((s["sensitivity"] or 0.0) >= SENSITIVITY_TARGET for s in tuned_scores),

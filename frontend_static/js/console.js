@@ -119,9 +119,11 @@ export async function sessionPage(main, sessionId, cleanup) {
     clear(health);
     if (!s) { health.append(metric("Telemetry", "waiting…")); return; }
     const engineering = (el) => { el.classList.add("engineering-only"); return el; };
+    const warning = (el) => { el.classList.add("warn"); return el; };
     health.append(
       metric("Robot", describeRobot(s).label, describeRobot(s).level === "bad"),
       metric("Harness load", fmt(s.harness_load_n, "N", 0)),
+      ...(s.fall_detection_unavailable ? [warning(metric("Fall detection", "off (no force plates on this robot)"))] : []),
       metric("Emergency stop", s.estop_latched ? "LATCHED" : "clear", s.estop_latched),
       metric("Last stop", words(s.stop_reason)),
       engineering(metric("Drives (HAL)", String(s.hal_state))),

@@ -63,10 +63,11 @@ const EVENT_WORDS = {
   emergency_stop: "Emergency stop", fall: "Fall detected", fault: "Fault", limit_hit: "Stopped at a robot limit",
   controlled_stop: "Robot stopped", prescription_completed: "Prescription completed", acknowledged: "Acknowledged by the therapist",
   segment_started: "Segment started", harness_catch: "Harness caught the patient",
+  fall_detection_unavailable: "Fall detection off (no force plates on this robot)",
 };
 // Events a clinician acts on; the rest (state transitions, drive and HAL steps) are engineering detail.
 export const CLINICAL_EVENTS = new Set(["start", "pause", "resume", "stop", "reset", "emergency_stop", "fall", "fault",
-  "limit_hit", "controlled_stop", "prescription_completed", "acknowledged", "harness_catch"]);
+  "limit_hit", "controlled_stop", "prescription_completed", "acknowledged", "harness_catch", "fall_detection_unavailable"]);
 // A detail's unit from its name's SI suffix, and how it is shown (the units of the screen).
 const UNIT_SUFFIXES = [
   ["_m_s2", "m/s²", 1, 2], ["_rad_s", "°/s", 180 / Math.PI, 1], ["_rad", "°", 180 / Math.PI, 1], ["_m_s", "mm/s", 1000, 0],

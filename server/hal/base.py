@@ -14,6 +14,7 @@ set-point outside the stroke or a jump beyond one tick's travel is refused with 
 
 Optional capabilities are declared here, with a default every backend inherits, so callers never probe
 for attributes: `simulates_patient` / `attach_patient()` (backends whose platforms are simulated),
+`measures_patient_loads` (backends whose readings carry the force plates and the harness load cell),
 `drain_events()` (bus and drive events; none by default) and `wait_for_feedback()` (for backends whose
 readings arrive asynchronously; immediate by default).
 
@@ -144,6 +145,8 @@ class HardwareInterface(abc.ABC):
 
     # Whether the platforms carry a simulated patient (`attach_patient`); real drives carry a real one.
     simulates_patient: ClassVar[bool] = False
+    # Whether `read()` fills the force plates and the harness load cell: the fall detectors need them.
+    measures_patient_loads: ClassVar[bool] = False
 
     def __init__(self, twin: TwinRobot, control_period_s: float) -> None:
         if not 0.0 < control_period_s <= 0.01:

@@ -24,6 +24,7 @@ from server.hal.canopen.cia402 import DriveStateMachines
 
 class KinematicHal(HardwareInterface):
     simulates_patient = True
+    measures_patient_loads = True  # the simulated patient's plates and harness
 
     def __init__(self, twin: TwinRobot, control_period_s: float, *, communication_timeout_s: float = 0.05) -> None:
         super().__init__(twin, control_period_s)

@@ -88,6 +88,8 @@ class TickPipeline:
         self.segments: list[_SegmentRuntime] = []
         self.dynamics = TwinInverseDynamics(twin)
         self.fall_monitor: FallMonitor | None = None
+        # The patient's detectors this backend cannot run (it reads no plates); None: all run as configured.
+        self.detectors_off: list[str] | None = None
         # Motion state: the last stance command sent and its finite-difference derivatives.
         # The telemetry record is the working memory: HAL readings, commands and poses are views into
         # it, so publishing a tick copies no arrays.
@@ -150,6 +152,8 @@ class TickPipeline:
         self.wrote_this_tick = False
         self._estop_request_ns: int | None = None
         self.estop_latency_ms: float | None = None
+        # A property of the robot, constant: the console shows it as "fall detection off".
+        self.record["fall_detection_unavailable"] = not hal.measures_patient_loads
         self._limits_vector = self.default_limits.kernel_vector()
         self._stroke_min, self._stroke_max = self.default_limits.stroke_min_m, self.default_limits.stroke_max_m
 
@@ -159,9 +163,17 @@ class TickPipeline:
         """Take a checked plan: build every segment's streaming objects now, with the drives off."""
         self.supervisor.require("load", SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
         segments = [_SegmentRuntime(segment, self.period_s) for segment in plan.segments]
+        # The drives carry the patient whatever the backend reads: the payload is in the drive forces.
         payload = plan.patient.payload() if plan.patient else None
         self.dynamics = TwinInverseDynamics(self.twin, payload)
-        self.fall_monitor = FallMonitor(plan.patient.fall_detectors, self.period_s) if plan.patient else None
+        monitor = FallMonitor(plan.patient.fall_detectors, self.period_s) if plan.patient else None
+        # Every detector reads the force plates or the harness load cell. A backend that reads neither leaves
+        # them at zero, an empty platform: the detectors would end every session as a fall at once. None runs
+        # there (the drive forces carry the patient's weight, but no detector is validated on them).
+        if monitor is not None and not self.hal.measures_patient_loads:
+            self.fall_monitor, self.detectors_off = None, [detector.name for detector in monitor.detectors]
+        else:
+            self.fall_monitor, self.detectors_off = monitor, None
         if self.hal.simulates_patient:
             self.hal.attach_patient(plan.patient)
         self.plan, self.segments = plan, segments
@@ -185,6 +197,17 @@ class TickPipeline:
         self.session_start_ns = time.perf_counter_ns()
         self.session_time_s = 0.0
         self.supervisor.start()
+        if self.detectors_off is not None:
+            backend = type(self.hal).__name__.removesuffix("Hal").lower()
+            self._emit(
+                "fall_detection_unavailable",
+                {
+                    "reason": f"the {backend} backend reads no force plates or harness load cell: falls are not "
+                    "detected automatically in this run; the harness still catches",
+                    "detectors_off": self.detectors_off,
+                },
+                None,
+            )
 
     def pause(self) -> None:
         self.supervisor.pause()

@@ -86,6 +86,7 @@ TELEMETRY_DTYPE = np.dtype(
         ("estop_latched", np.uint8),
         ("limit_code", np.uint8),  # LimitCode of the latest hit
         ("fall_detected", np.uint8),
+        ("fall_detection_unavailable", np.uint8),  # the backend reads no force plates or harness load cell
     ]
 )
 
@@ -143,4 +144,5 @@ def state_dict(record: np.ndarray) -> dict[str, Any]:
     result["limit_code"] = LimitCode(result["limit_code"]).label
     result["estop_latched"] = bool(result["estop_latched"])
     result["fall_detected"] = bool(result["fall_detected"])
+    result["fall_detection_unavailable"] = bool(result["fall_detection_unavailable"])
     return result

@@ -161,6 +161,29 @@ def test_a_half_m_s2_training_sine_is_no_fall_for_a_healthy_patient() -> None:
         assert trial.plate_cop_m[..., 0].min() > -0.9 * params.foot.heel_m
 
 
+@pytest.mark.parametrize(("mass_kg", "height_m"), [(55.0, 1.6), (70.0, 1.75), (120.0, 1.9)])
+def test_an_impaired_patient_rides_the_slow_tilt_of_a_training_sine(mass_kg: float, height_m: float) -> None:
+    """Issue 16 §11: the washout plays a 0.03 g, 0.25 Hz x-sine as a ±1.2° pitch, with ±0.09 m/s² left in the
+    translation 74° ahead of it (measured on the kinematic backend). A patient with impaired balance trains
+    at that; the former preset resonated at 0.31 Hz (sway 5× the tilt) and fell within 7 s."""
+    time_s = np.arange(1, 30_001) * PERIOD_S
+    omega = 2 * math.pi * 0.25
+    ramp = np.where(time_s < 4.0, 0.5 * (1 - np.cos(math.pi * np.minimum(time_s, 4.0) / 4.0)), 1.0)
+    tilt = np.zeros((time_s.size, 2))
+    tilt[:, 1] = math.radians(1.2) * ramp * np.sin(omega * time_s)
+    angular_velocity = np.zeros((time_s.size, 3))
+    angular_velocity[:, 1] = np.gradient(tilt[:, 1], PERIOD_S)
+    # The translation as a displacement, so that the support starts and stays at rest on average.
+    displacement = 0.09 / omega**2 * ramp * np.sin(omega * time_s + math.radians(74.0))
+    acceleration = np.zeros((time_s.size, 3))
+    acceleration[:, 0] = np.gradient(np.gradient(displacement, PERIOD_S), PERIOD_S)
+    for seed in range(3):
+        params = PatientParameters.preset("impaired", mass_kg, height_m)
+        trial = simulate(params, PERIOD_S, seed, acceleration, tilt, angular_velocity)
+        assert math.isnan(trial.fall_onset_s), (seed, trial.fall_onset_s, trial.fall_response)
+        assert np.degrees(np.abs(trial.sway_angle_rad[:, 0]).max()) < 4.0, seed
+
+
 @pytest.mark.parametrize("response", ["step", "grab", "harness_catch"])
 def test_a_loss_of_balance_is_a_step_a_grab_or_a_harness_catch(response: str) -> None:
     """Once the extrapolated COM leaves the feet the patient steps (a plate unloads), grabs the rail (the
@@ -245,3 +268,17 @@ def test_support_motion_shapes_a_tilt_pulse_that_returns_to_level() -> None:
     # The angular velocity integrates to the tilt.
     integrated = np.cumsum(motion.angular_velocity_rad_s[:, 0]) * PERIOD_S
     assert np.max(np.abs(integrated - roll)) < 2e-3
+
+
+def test_the_feedforward_torque_does_not_follow_a_structural_vibration() -> None:
+    """Muscles cannot make torque at 90 Hz. The feedforward that cancels the support's inertial push went
+    straight from the sensed acceleration to the ankle torque, so the COP followed a platform vibration; on
+    the MuJoCo backend that closed a loop with the structure and a 120 kg patient rang at 89 Hz."""
+    params = healthy(plate_cop_noise_m=0.0, sensory_noise_rad=0.0, motor_noise_per_mgh=0.0)
+    time_s = np.arange(1, 4001) * PERIOD_S
+    acceleration = np.zeros((time_s.size, 3))
+    acceleration[:, 0] = 1.0 * np.sin(2 * math.pi * 90.0 * time_s)  # m/s², as the finite-differenced plate
+    trial = simulate(params, PERIOD_S, 0, acceleration, np.zeros((time_s.size, 2)), np.zeros((time_s.size, 3)))
+    cop_x = trial.plate_cop_m[2000:, 0, 0]
+    # A torque following m·h·a would swing the COP by h·a/g ≈ ±95 mm (to the edges of the foot).
+    assert np.ptp(cop_x) < 0.015, f"COP swings {1e3 * np.ptp(cop_x):.0f} mm peak to peak"

@@ -6,6 +6,7 @@ to artifacts/e2e/."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 import re
 from typing import Any
 
@@ -137,6 +138,37 @@ def test_a_robot_warming_up_shows_as_starting_and_a_failed_one_offers_a_retry(co
     page.unroute("**/api/v1/robot/state")
     alert.get_by_role("button", name="Retry").click()  # checks again at once: the real robot is there
     expect(status).not_to_have_text(re.compile("FAULT|STARTING"), timeout=10_000)
+
+
+def test_a_robot_without_force_plates_shows_fall_detection_off(console: Any, clinic: dict[str, Any]) -> None:
+    """A backend that reads no force plates or harness load cell (the CANopen drives) runs the session with no
+    fall detector: the session page says so in orange. The robot's real telemetry, with the robot's flag set
+    as that backend sets it; on this (kinematic) robot, which reads its plates, nothing is said."""
+    session = console()
+    page = session.login()
+    plateless = {"on": False}
+
+    def relay(ws: Any) -> None:
+        server = ws.connect_to_server()
+
+        def forward(message: str | bytes) -> None:
+            frame = json.loads(message)
+            if plateless["on"] and frame.get("state"):
+                frame["state"]["fall_detection_unavailable"] = True
+            ws.send(json.dumps(frame))
+
+        server.on_message(forward)
+
+    page.route_web_socket(re.compile(r"/telemetry$"), relay)
+    session.go(f"#/session/{clinic['booking']['id']}")
+    expect(page.get_by_role("heading", name="Session console")).to_be_visible()
+    health = page.locator("#health")
+    expect(health.locator(".metric").filter(has_text="Harness load")).to_be_visible(timeout=15_000)
+    expect(health.locator(".metric").filter(has_text="Fall detection")).to_have_count(0)
+    plateless["on"] = True
+    off = health.locator(".metric").filter(has_text="Fall detection")
+    expect(off).to_contain_text("off (no force plates on this robot)", timeout=15_000)
+    expect(off).to_have_class(re.compile(r"\bwarn\b"))
 
 
 def test_restart_after_a_fall_needs_an_acknowledgement(console: Any, clinic: dict[str, Any]) -> None:

@@ -156,6 +156,8 @@ def test_scaling_round_trips_counts_and_grows_outwards(twin: TwinRobot) -> None:
     [
         ({"direction": 2}, "direction"),
         ({"home_position_mm": 5.0}, "home_position_mm"),
+        # Inside the stroke, but no platform pose puts slider 1 there with the others at neutral.
+        ({"home_position_mm": 150.0}, r"axes\[0\.\.5\] \(right robot\)\.home_position_mm"),
         ({"node_id": 2}, "axes.node_id"),
         ({"drive_type": "nope"}, "drive_type"),
     ],

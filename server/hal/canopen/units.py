@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from core.errors import InvalidValueError
+from core.kinematics import ForwardKinematicsError, forward_kinematics
 from core.robot import TwinRobot
 from server.hal.base import AXIS_COUNT, HalError, HardwareInterface
 
@@ -223,6 +224,17 @@ class AxisScaling:
                     self.counts_per_m[axis] / 1e3,
                     f"the stroke spans {far_counts:.0f} counts, beyond 0x607A's INTEGER32 range",
                 )
+        # A closed chain: the six sliders of a robot can only stand where one platform pose puts them.
+        for index, (side, robot) in enumerate(zip(("right", "left"), robots, strict=True)):
+            homes = self.home_position_m[6 * index : 6 * index + 6]
+            try:
+                forward_kinematics(robot, homes[None, :])
+            except ForwardKinematicsError as error:
+                raise DriveConfigurationError(
+                    f"axes[{6 * index}..{6 * index + 5}] ({side} robot).home_position_mm",
+                    [round(float(h) * 1e3, 3) for h in homes],
+                    f"must be the sliders of one platform pose: {error}",
+                ) from None
 
     def counts_from_positions(self, positions_m: np.ndarray, out: np.ndarray) -> None:
         np.rint((positions_m - self.home_position_m) / self._m_per_count, out=out, casting="unsafe")

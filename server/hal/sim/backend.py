@@ -37,6 +37,7 @@ from server.hal.sim.simulator import SimulatorOptions, TwinSimulator
 
 class SimHal(HardwareInterface):
     simulates_patient = True
+    measures_patient_loads = True  # the simulated patient's plates and harness
 
     def __init__(
         self,

@@ -23,9 +23,13 @@ from server.hal.canopen.cia402 import DriveStateMachines
 
 @dataclass(frozen=True)
 class ServoParameters:
+    # The cascade on an axis of effective mass m, m·s³ + kv·s² + kv·(kp + ki)·s + kv·ki·kp, is stable (Routh)
+    # only while m < kv·(1/kp + 1/ki): 1333 kg at kv 20 000, ki 20. A mode's effective mass in slider
+    # coordinates is many times the payload (a cantilevered foot, a tall body), and a 120 kg patient's half-body
+    # per platform already rang at ~9.5 Hz. These gains give 3500 kg: still up to the paper's 250 kg rated load.
     position_gain_per_s: float = 60.0  # position loop: commanded speed per metre of error
-    velocity_gain_n_s_m: float = 20_000.0  # velocity loop P (about 20 Hz on the heaviest axis mode)
-    velocity_integral_per_s: float = 20.0  # velocity loop I, as a corner frequency (rad/s)
+    velocity_gain_n_s_m: float = 30_000.0  # velocity loop P
+    velocity_integral_per_s: float = 10.0  # velocity loop I, as a corner frequency (rad/s)
     velocity_limit_m_s: float = 1.5
     force_limit_n: float = 4000.0  # the current limit times the force constant
     quick_stop_deceleration_m_s2: float = 10.0

@@ -54,6 +54,10 @@ class SimModelOptions:
     # cross-check of core.clearance. Off by default: the servo and dynamics cross-checks were calibrated
     # without, and a layout that can be built never touches (issue 13).
     contacts: bool = False
+    # A simulated patient's mass (kg), carried by a point-mass body at each foot plate's origin (under the
+    # ankle) so that MuJoCo solves the mass the plates carry along implicitly; the simulator sets each
+    # foot's share every control period. 0: no such bodies.
+    patient_mass_kg: float = 0.0
 
 
 def _vector(values: np.ndarray) -> str:
@@ -174,6 +178,12 @@ def _robot_xml(twin: TwinRobot, side: str, options: SimModelOptions, lines: list
             attachment[2] += options.harness.attachment_height_m
             lines.append(f'      <site name="harness_attachment" pos="{_vector(attachment)}"/>')
         lines.append("    </body>")
+    if options.patient_mass_kg > 0.0:
+        lines += [
+            f'    <body name="{side}_patient_load">',
+            f'      <inertial pos="0 0 0" mass="{0.5 * options.patient_mass_kg:.10g}" diaginertia="1e-6 1e-6 1e-6"/>',
+            "    </body>",
+        ]
     lines += ["  </body>", "</body>"]
 
 

@@ -1,10 +1,16 @@
 """The twin stepped in MuJoCo at the control rate with emulated drives and, optionally, a simulated patient.
 
 Without a patient the payload is the rigid half-body per foot of `core.dynamics`; the plate sensors and the
-harness tendon measure it. With a patient (`core.patient.SimulatedPatient`), the foot plates carry no rigid
-mass: each control period the patient model is driven by the support motion (acceleration, roll/pitch and
-angular velocity of the platforms) and its foot loads are applied to the foot plates, vertical load at the
-centre of pressure plus the horizontal force that carries the patient's mass share along with the support.
+harness tendon measure it. With a patient (`core.patient.SimulatedPatient`), each control period the patient
+model is driven by the support motion (acceleration, roll/pitch and angular velocity of the platforms) and
+its foot loads act on the foot plates: the load at the centre of pressure, along the plate's normal.
+
+The mass the plates carry along is MuJoCo's: a point-mass body at each plate's origin (under the ankle) holds
+that foot's share of the patient's mass, set every period from the patient's foot loads, so the support's
+acceleration enters its inertia implicitly. Applying the carrying force m·a from the finite-differenced
+acceleration of the last period instead closes a one-step loop with gain m / (the plate's own mass): it
+diverged with a 120 kg patient. The explicit wrench takes back what MuJoCo already applies to those bodies
+(their weight and the heave the patient model saw), so the plates feel the patient's loads once.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ import numba
 import numpy as np
 
 from core.patient import PatientParameters, SimulatedPatient
-from core.robot import TwinRobot
+from core.robot import GRAVITY_M_S2, TwinRobot
 from server.hal.sim.drives import ServoDrives, ServoParameters
 from server.hal.sim.mjcf import SimModelOptions
 from server.hal.sim.model import TwinSimModel
@@ -42,7 +48,7 @@ class TwinSimulator:
         physics_dt = options.control_period_s / options.physics_substeps
         model_options = replace(options.model, timestep_s=physics_dt)
         if options.patient is not None:  # the patient's loads replace the rigid payload and its rope
-            model_options = replace(model_options, payload=None)
+            model_options = replace(model_options, payload=None, patient_mass_kg=options.patient.body_mass_kg)
         self.options = options
         self.twin = twin
         self.sim_model = TwinSimModel(twin, model_options)
@@ -58,6 +64,12 @@ class TwinSimulator:
         self._actuator_range = self.model.actuator_forcerange
         self._plate_bodies = np.array([self.model.body(f"{s}_foot_plate").id for s in twin.sides])
         self._plate_wrenches = np.zeros((2, 6))
+        self._load_bodies = (
+            np.array([self.model.body(f"{s}_patient_load").id for s in twin.sides])
+            if self.patient is not None
+            else None
+        )
+        self._load_masses = np.zeros(2)
         self._positions = np.zeros(12)
         self._velocities = np.zeros(12)
         self._previous_support_velocity = np.zeros(3)
@@ -139,8 +151,10 @@ class TwinSimulator:
             sample.plate_cop_m,
             self.patient.params.body_mass_kg,
             self._support_acceleration,
+            self._load_masses,
             self._plate_wrenches,
         )
+        self.model.body_mass[self._load_bodies] = self._load_masses
         data.xfrc_applied[self._plate_bodies] = self._plate_wrenches
         self.plate_force_z_n[:] = sample.plate_force_z_n
         self.plate_cop_m[:] = sample.plate_cop_m
@@ -182,23 +196,30 @@ def _foot_wrenches(
     cop: np.ndarray,
     body_mass_kg: float,
     support_acceleration: np.ndarray,
+    load_masses_out: np.ndarray,
     wrenches_out: np.ndarray,
 ) -> None:
-    """World wrench (force, torque about the body COM) of each foot on its plate: the vertical load at the
-    centre of pressure, and the horizontal force that carries the foot's share of the body along."""
+    """Each foot's share of the patient's mass (for the plate's load body) and the world wrench (force, torque
+    about the plate body's COM) of that foot on its plate: the load at the centre of pressure along the
+    plate's normal, less what MuJoCo applies to the load body itself, its weight and the heave inertia
+    m·a_z (a_z the support acceleration the patient model was given), at the plate's origin."""
     total = force_z[0] + force_z[1]
     for foot in range(2):
         rotation = plate_rotations[foot]
         share = body_mass_kg * force_z[foot] / total if total > 0.0 else 0.0
+        load_masses_out[foot] = share
         force = np.empty(3)
         for i in range(3):
-            horizontal = -share * support_acceleration[i] if i < 2 else 0.0
-            force[i] = horizontal - force_z[foot] * rotation[3 * i + 2]
-        lever = np.empty(3)
+            force[i] = -force_z[foot] * rotation[3 * i + 2]
+        point = np.empty(3)
         for i in range(3):
-            point = plate_positions[foot, i] + rotation[3 * i] * cop[foot, 0] + rotation[3 * i + 1] * cop[foot, 1]
-            lever[i] = point - plate_coms[foot, i]
-        wrenches_out[foot, 0:3] = force
-        wrenches_out[foot, 3] = lever[1] * force[2] - lever[2] * force[1]
-        wrenches_out[foot, 4] = lever[2] * force[0] - lever[0] * force[2]
-        wrenches_out[foot, 5] = lever[0] * force[1] - lever[1] * force[0]
+            point[i] = plate_positions[foot, i] + rotation[3 * i] * cop[foot, 0] + rotation[3 * i + 1] * cop[foot, 1]
+        lever = point - plate_coms[foot]
+        torque = np.cross(lever, force)
+        lift = share * (GRAVITY_M_S2 + support_acceleration[2])  # upward, at the load body (plate origin)
+        origin_lever = plate_positions[foot] - plate_coms[foot]
+        wrenches_out[foot, 0:2] = force[0:2]
+        wrenches_out[foot, 2] = force[2] + lift
+        wrenches_out[foot, 3] = torque[0] + origin_lever[1] * lift
+        wrenches_out[foot, 4] = torque[1] - origin_lever[0] * lift
+        wrenches_out[foot, 5] = torque[2]
