@@ -69,7 +69,8 @@ def test_clinician_flow(console_service: dict[str, object], browser: Any) -> Non
         page.get_by_label("Frequency").fill("0.5")
         page.get_by_role("button", name="Preview motion").click()
         expect(page.locator(".verdict")).to_contain_text("accepts", timeout=120_000)
-        expect(page.locator("#main .chart")).to_have_count(4)
+        # Position, angles, perceived acceleration at the head, slider travel, tilt rate against the threshold.
+        expect(page.locator("#main .chart")).to_have_count(5)
         shot(page, "prescription-preview")
         page.get_by_role("button", name="Save prescription").click()
         expect(page.get_by_role("heading", name="Prescription: Lateral sway, week 1 (v1)")).to_be_visible()
