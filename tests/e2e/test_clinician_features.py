@@ -254,6 +254,14 @@ def test_a_camera_preset_moves_the_3d_view_of_that_browser_only(console: Any, cl
         cameras[name].wait_for(preset, timeout_s=60.0)
     wall.page.wait_for_timeout(3000)  # a late initial pose would reset the view: it must stay where it is
     assert (cameras["tablet"].looks_from(), cameras["wall"].looks_from()) == ("front", "oblique")
+    # viser's own preset buttons (the wall screen's panel, engineering on) turn the wall screen only.
+    turn_engineering_on(wall.page)
+    right = wall.page.frame_locator("#viz-frame").get_by_role("button", name="Right side")
+    expect(right).to_be_visible(timeout=20_000)
+    right.evaluate("button => button.click()")  # a DOM click: software WebGL paints too seldom for pointers
+    cameras["wall"].wait_for("right")
+    tablet.page.wait_for_timeout(3000)
+    assert cameras["tablet"].looks_from() == "front", cameras["tablet"].position
     assert not tablet.errors and not wall.errors, (tablet.errors, wall.errors)
 
 
