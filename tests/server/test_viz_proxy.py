@@ -6,6 +6,7 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import httpx
 import pytest
@@ -83,6 +84,16 @@ def test_view_socket_relays_viser_to_a_logged_in_user(viz_client: TestClient, se
 # --- issue 16, 3D view: viser's panel follows each browser's own engineering switch ------------------
 
 
+def viser_messages(frame: bytes) -> list[dict[str, Any]]:
+    """The messages in one frame viser sent: sizes (8 + 8 bytes, little-endian), then zstd-compressed msgpack."""
+    import msgspec
+    import zstandard
+
+    size, compressed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
+    inner = zstandard.ZstdDecompressor().decompress(frame[16 : 16 + compressed], max_output_size=size)
+    return list(msgspec.msgpack.decode(inner)["messages"])
+
+
 class ViserBrowser:
     """One browser's viser client behind the console's relay: it says where its camera is (viser counts a
     client as connected from then on) and mirrors viser's control panel as viser's page does (per axis and
@@ -115,18 +126,13 @@ class ViserBrowser:
 
     def read(self, quiet_s: float = 1.0) -> bool:
         """Takes in what viser sent until it has been quiet for `quiet_s` (s); True when the panel is minimized."""
-        import msgspec
-        import zstandard
-
         while True:
             try:
                 frame = self.socket.recv(timeout=quiet_s)
             except TimeoutError:
                 return self.collapsed
             assert isinstance(frame, bytes)
-            size, compressed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
-            inner = zstandard.ZstdDecompressor().decompress(frame[16 : 16 + compressed], max_output_size=size)
-            for message in msgspec.msgpack.decode(inner)["messages"]:
+            for message in viser_messages(frame):
                 if message["type"] == "SetCameraPositionMessage":
                     self._place_camera(tuple(message["position"]), initial=bool(message["initial"]))
                 if message["type"] != "GuiSetPanelCollapsedMessage" or message["uuid"] != "viser-control-panel":
