@@ -4,7 +4,8 @@ and its WebSocket to logged-in users, so nobody watches a patient's session by r
 viser's client derives its WebSocket address from the page address, so the page served at
 `/api/v1/viz/view/` opens `ws(s)://<console>/api/v1/viz/view`, which is relayed here. The relay names the
 browser to viser (`?viewer=`, from the login that opened the socket), so that viser's panel follows that
-browser's own engineering switch (`POST /viz/controls` from the same login), not another browser's.
+browser's own engineering switch (`POST /viz/controls` from the same login) and a camera preset
+(`POST /viz/camera`) turns that browser's views, not another browser's.
 """
 
 from __future__ import annotations

@@ -119,9 +119,10 @@ def go_live(request: Request, viewer: Viewer) -> dict[str, Any]:
 
 @router.post("/camera", responses={503: {"description": "No 3D view"}})
 def set_camera(data: CameraRequest, request: Request, viewer: Viewer) -> dict[str, Any]:
-    """Look from a preset: front (where the patient faces), left or right side, from above, or the overview."""
+    """Look from a preset: front (where the patient faces), left or right side, from above, or the overview;
+    in the 3D views of the asking browser only (its login), every other browser keeps its own camera."""
     view = _view(request)
-    view.set_camera(data.preset)
+    view.set_camera(viewer, data.preset)
     return view.status(viewer)
 
 

@@ -33,6 +33,7 @@ CAMERA_PRESETS: dict[str, tuple[tuple[float, float, float], tuple[float, float, 
     "right": ((0.0, -4.2, 1.2), (0.0, 0.0, 0.8)),
     "top": ((0.01, 0.0, 5.0), (0.0, 0.0, 0.0)),
 }
+DEFAULT_PRESET = "oblique"
 PRESET_WORDS = {
     "oblique": "Overview",
     "front": "Front",
@@ -45,7 +46,7 @@ PRESET_WORDS = {
 SOFTWARE_WEBGL_NOTICE = "webgl-software-rendering"
 NOTICE_REMOVAL_DELAYS_S = (0.5, 2.0, 5.0)  # the browser shows it on mount, before or after connecting
 # The console's relay (proxy.py) names the browser of each viser connection in this query parameter, so that
-# viser's panel follows that browser's own engineering switch.
+# viser's panel follows that browser's own engineering switch and a camera preset turns that browser's views.
 VIEWER_PARAM = "viewer"
 VIEWER_MAX_CHARS = 64
 
@@ -129,10 +130,11 @@ class LiveView:
         self.last_tick: int | None = None
         self.server: Any = None
         self.scene: TwinScene | None = None
-        self.camera_preset = "oblique"
-        # viser's panel per browser: the viewers whose switch is on, and which viser clients each one has open.
-        self._panel_lock = threading.Lock()
+        # Per browser (viewer): whose switch shows viser's panel, where each one looks from, and which viser
+        # clients each one has open. The scene itself (robot, figure, labels) is shared by all.
+        self._viewers_lock = threading.Lock()
         self._panel_viewers: set[str] = set()
+        self._preset_of_viewer: dict[str, str] = {}
         self._viewer_of_client: dict[int, str | None] = {}
 
     def start(self) -> None:
@@ -144,8 +146,8 @@ class LiveView:
         self.server.gui.configure_theme(
             control_layout="floating", control_width="small", show_logo=False, show_share_button=False
         )
-        position, look_at = CAMERA_PRESETS["oblique"]
-        self.server.initial_camera.position = position
+        position, look_at = CAMERA_PRESETS[DEFAULT_PRESET]  # every page opens on the overview, unless its
+        self.server.initial_camera.position = position  # browser chose another preset (`_welcome`)
         self.server.initial_camera.look_at = look_at
         self.scene = TwinScene(self.server, self.twin)
         # The camera presets are the panel's content, so viser's developer controls (server address,
@@ -153,12 +155,12 @@ class LiveView:
         with self.server.gui.add_folder("Camera"):
             for preset, label in PRESET_WORDS.items():
                 button = self.server.gui.add_button(label)
-                button.on_click(lambda _event, preset=preset: self.set_camera(preset))
+                button.on_click(lambda event, preset=preset: self._preset_clicked(event.client, preset))
         self.server.on_client_connect(self._hide_software_webgl_notice)
         # viser's panel is an engineering tool, shown only in the browsers whose switch is on. Each client gets
         # its own minimize/expand (client scope, one sender, so in order); a server-wide default as well would
-        # race with it on connect (two senders: the later arrival wins in viser's page).
-        self.server.on_client_connect(self._place_panel)
+        # race with it on connect (two senders: the later arrival wins in viser's page). Likewise its camera.
+        self.server.on_client_connect(self._welcome)
         self.server.on_client_disconnect(self._forget_client)
         self._thread = threading.Thread(target=self._run, name="viz-feed", daemon=True)
         self._thread.start()
@@ -177,23 +179,53 @@ class LiveView:
 
     # --- camera, figure, notices -----------------------------------------------------------------------
 
-    def set_camera(self, preset: str) -> None:
-        """Every open view (and views opened later) looks from this preset."""
+    def set_camera(self, viewer: str, preset: str) -> None:
+        """This viewer's open views, and the ones it opens later, look from this preset (a viewer is one
+        browser's login: `proxy.viewer_of`); every other browser keeps its own camera."""
         if preset not in CAMERA_PRESETS:
             raise ValueError(f"preset = {preset!r}: must be one of {sorted(CAMERA_PRESETS)}")
+        with self._viewers_lock:
+            self._preset_of_viewer[viewer] = preset
+            for client_id, client in self.server.get_clients().items():
+                if self._viewer_of_client.get(client_id) == viewer:
+                    self._aim(client, preset)
+
+    def camera_preset(self, viewer: str | None) -> str:
+        with self._viewers_lock:
+            return self._preset_of_viewer.get(viewer, DEFAULT_PRESET) if viewer is not None else DEFAULT_PRESET
+
+    def _preset_clicked(self, client: Any, preset: str) -> None:
+        """A preset button of viser's own panel: the clicking browser's views turn (an unknown browser: only
+        the view clicked in)."""
+        if client is None:
+            return
+        with self._viewers_lock:
+            viewer = self._viewer_of_client.get(client.client_id)
+        if viewer is not None:
+            self.set_camera(viewer, preset)
+        else:
+            self._aim(client, preset)
+
+    @staticmethod
+    def _aim(client: Any, preset: str) -> None:
+        """Turns one viser client to a preset. Its own initial pose too, where viser's page returns on "Reset
+        View" and when the scene's initial pose reaches a page just opened (so that cannot undo this turn)."""
+        from viser._messages import SetCameraLookAtMessage, SetCameraPositionMessage  # no per-client API in 1.1
+
         position, look_at = CAMERA_PRESETS[preset]
-        self.server.initial_camera.position = position
-        self.server.initial_camera.look_at = look_at
-        for client in self.server.get_clients().values():
-            with client.atomic():
-                client.camera.position = position
-                client.camera.look_at = look_at
-        self.camera_preset = preset
+        with client.atomic():
+            try:
+                client._websock_connection.queue_message(SetCameraPositionMessage(position, initial=True))
+                client._websock_connection.queue_message(SetCameraLookAtMessage(look_at, initial=True))
+            except AttributeError:  # viser changed its internals: the view still turns, "Reset View" goes back
+                logger.warning("3D view: could not set viser client %s's own initial camera", client.client_id)
+            client.camera.position = position
+            client.camera.look_at = look_at
 
     def set_controls_visible(self, viewer: str, visible: bool) -> None:
         """Expands viser's control panel, or minimizes it to its title bar, in this viewer's open views and
-        later ones (a viewer is one browser's login: `proxy.viewer_of`); every other browser keeps its own."""
-        with self._panel_lock:
+        later ones; every other browser keeps its own."""
+        with self._viewers_lock:
             if visible:
                 self._panel_viewers.add(viewer)
             else:
@@ -203,7 +235,7 @@ class LiveView:
                     self._show_panel(client, visible)
 
     def controls_visible(self, viewer: str | None) -> bool:
-        with self._panel_lock:
+        with self._viewers_lock:
             return viewer in self._panel_viewers
 
     @staticmethod
@@ -214,13 +246,17 @@ class LiveView:
         else:
             panel.minimize()
 
-    def _place_panel(self, client: Any) -> None:
-        with self._panel_lock:  # held while sending, so that a switch at this moment lands after this
+    def _welcome(self, client: Any) -> None:
+        """A new viser client (a page opened or reloaded): its browser's panel and camera."""
+        with self._viewers_lock:  # held while sending, so that a switch or preset at this moment lands after
             viewer = self._viewer_of_client[client.client_id] = self._viewer_of(client)
             self._show_panel(client, viewer in self._panel_viewers)
+            preset = self._preset_of_viewer.get(viewer, DEFAULT_PRESET) if viewer is not None else DEFAULT_PRESET
+            if preset != DEFAULT_PRESET:  # the scene's initial pose is the overview already
+                self._aim(client, preset)
 
     def _forget_client(self, client: Any) -> None:
-        with self._panel_lock:
+        with self._viewers_lock:
             self._viewer_of_client.pop(client.client_id, None)
 
     def _viewer_of(self, client: Any) -> str | None:
@@ -267,7 +303,7 @@ class LiveView:
             self._last_shown = None
 
     def status(self, viewer: str | None = None) -> dict[str, Any]:
-        """The view's state; `controls_visible` is this viewer's (None: no browser's)."""
+        """The view's state; `controls_visible` and `camera_preset` are this viewer's (None: no browser's)."""
         with self._lock:
             replay = self._replay
         scene = self.scene
@@ -279,7 +315,7 @@ class LiveView:
             "frames_shown": scene.frames_shown if scene is not None else 0,
             "last_tick": self.last_tick,
             "robot_connected": self.latest_state is not None,
-            "camera_preset": self.camera_preset,
+            "camera_preset": self.camera_preset(viewer),
             "controls_visible": self.controls_visible(viewer),
             "camera_presets": list(CAMERA_PRESETS),
             "figure_height_m": scene.figure_height_m if scene is not None else None,

@@ -13,6 +13,7 @@ from typing import Any
 import pytest
 
 from tests.e2e.conftest import ARTIFACTS, THERAPIST, field_error, fill_patient, turn_engineering_on
+from tests.server.test_viz_proxy import preset_at, viser_messages
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -199,6 +200,79 @@ def test_the_engineering_switch_of_one_browser_leaves_the_other_browsers_3d_view
     wall.page.wait_for_timeout(3000)
     expect(wall.page.frame_locator("#viz-frame").get_by_role("button", name="Front")).to_be_hidden()
     expect(wall.page.get_by_label("Engineering details")).not_to_be_checked()
+    assert not tablet.errors and not wall.errors, (tablet.errors, wall.errors)
+
+
+class CameraWatch:
+    """A browser's 3D view: where viser's page says it looks from (each camera change sends a
+    `ViewerCameraMessage` up the view's WebSocket; msgpack, position in m, world frame), and every camera move
+    the console sent it (down the same socket, read as the network delivers it, however seldom the page
+    paints with software WebGL)."""
+
+    def __init__(self, page: Any) -> None:
+        self.page = page
+        self.position: tuple[float, ...] | None = None
+        self.moves: list[str | None] = []  # the preset of each move sent to this browser
+        page.on("websocket", self._watch)
+
+    def _watch(self, socket: Any) -> None:
+        if "/api/v1/viz/view" in socket.url:
+            socket.on("framesent", self._sent)
+            socket.on("framereceived", self._received)
+
+    def _sent(self, payload: Any) -> None:
+        import msgspec
+
+        if isinstance(payload, bytes):
+            message = msgspec.msgpack.decode(payload)
+            if isinstance(message, dict) and message.get("type") == "ViewerCameraMessage":
+                self.position = tuple(message["position"])
+
+    def _received(self, payload: Any) -> None:
+        if isinstance(payload, bytes):
+            self.moves += [preset_at(tuple(m["position"]), 1e-6) for m in viser_messages(payload)
+                           if m["type"] == "SetCameraPositionMessage" and not m["initial"]]  # fmt: skip
+
+    def looks_from(self) -> str | None:
+        return preset_at(self.position, 0.02)  # m: the page reports its camera in float32
+
+    def wait_for(self, preset: str, timeout_s: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while self.looks_from() != preset and time.monotonic() < deadline:
+            self.page.wait_for_timeout(200)  # Playwright delivers the socket's frames while it waits
+        assert self.looks_from() == preset, f"the view looks from {self.position}, not from the {preset} preset"
+
+
+def test_a_camera_preset_moves_the_3d_view_of_that_browser_only(console: Any, clinic: dict[str, Any]) -> None:
+    """The therapist's tablet looks from the front: the wall screen (the same account, logged in on another
+    device) keeps its overview, also after it reloads; the tablet's own reload looks from the front again."""
+    tablet, wall = console(user=THERAPIST[:2]), console(user=THERAPIST[:2])
+    cameras = {"tablet": CameraWatch(tablet.page), "wall": CameraWatch(wall.page)}
+    for name, browser in (("tablet", tablet), ("wall", wall)):
+        browser.login()
+        browser.go(f"#/session/{clinic['booking']['id']}")
+        expect(browser.page.frame_locator("#viz-frame").locator("canvas").first).to_be_visible(timeout=60_000)
+        cameras[name].wait_for("oblique", timeout_s=60.0)
+    tablet.page.locator(".camera-presets").get_by_role("button", name="Front").click()
+    cameras["tablet"].wait_for("front")
+    wall.page.wait_for_timeout(3000)  # the time the tablet's view took to turn, and more
+    assert (cameras["wall"].moves, cameras["wall"].looks_from()) == ([], "oblique"), cameras["wall"].position
+    for name, browser, preset in (("wall", wall, "oblique"), ("tablet", tablet, "front")):
+        cameras[name].position = None
+        browser.page.reload()
+        cameras[name].wait_for(preset, timeout_s=60.0)
+    wall.page.wait_for_timeout(3000)  # a late initial pose would reset the view: it must stay where it is
+    assert (cameras["tablet"].looks_from(), cameras["wall"].looks_from()) == ("front", "oblique")
+    assert cameras["wall"].moves == [], cameras["wall"].moves
+    # viser's own preset buttons (the wall screen's panel, engineering on) turn the wall screen only.
+    turn_engineering_on(wall.page)
+    right = wall.page.frame_locator("#viz-frame").get_by_role("button", name="Right side")
+    expect(right).to_be_visible(timeout=20_000)
+    cameras["tablet"].moves.clear()
+    right.evaluate("button => button.click()")  # a DOM click: software WebGL paints too seldom for pointers
+    cameras["wall"].wait_for("right")
+    tablet.page.wait_for_timeout(3000)
+    assert (cameras["tablet"].moves, cameras["tablet"].looks_from()) == ([], "front"), cameras["tablet"].position
     assert not tablet.errors and not wall.errors, (tablet.errors, wall.errors)
 
 

@@ -277,32 +277,6 @@ class RecordingCamera:
     look_at: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
-class RecordingClient:
-    def __init__(self) -> None:
-        self.camera = RecordingCamera()
-
-    @contextlib.contextmanager
-    def atomic(self) -> Any:
-        yield
-
-
-def test_camera_presets_move_every_open_view_and_later_ones() -> None:
-    from server.viz.view import CAMERA_PRESETS
-
-    view, server = _view_with(None)
-    clients = {1: RecordingClient(), 2: RecordingClient()}
-    server.get_clients = lambda: clients  # type: ignore[attr-defined]
-    server.initial_camera = RecordingCamera()  # type: ignore[attr-defined]
-    view.set_camera("front")
-    assert all(c.camera.position == CAMERA_PRESETS["front"][0] for c in clients.values())
-    assert server.initial_camera.position == CAMERA_PRESETS["front"][0]  # type: ignore[attr-defined]
-    assert view.status()["camera_preset"] == "front"
-    front, left = CAMERA_PRESETS["front"][0], CAMERA_PRESETS["left"][0]
-    assert front[0] > abs(front[1]) and left[1] > abs(left[0])  # in front of the patient, at their left
-    with pytest.raises(ValueError, match="preset"):
-        view.set_camera("behind")
-
-
 class RecordingPanel:
     def __init__(self) -> None:
         self.calls: list[str] = []
@@ -314,27 +288,93 @@ class RecordingPanel:
         self.calls.append("expand")
 
 
-class PanelClient:
-    """A viser client as the view sees it: its id, its own panel, and the address the relay opened it with."""
+class RecordingConnection:
+    def __init__(self) -> None:
+        self.queued: list[Any] = []
+
+    def queue_message(self, message: Any) -> None:
+        self.queued.append(message)
+
+
+class ViewClient:
+    """A viser client as the view sees it: its id, its own panel and camera, and the address the relay
+    opened it with."""
 
     def __init__(self, client_id: int, path: str) -> None:
         self.client_id, self.path = client_id, path
         self.gui = type("Gui", (), {"main_panel": RecordingPanel()})()
+        self.camera = RecordingCamera()
+        self._websock_connection = RecordingConnection()
+
+    @contextlib.contextmanager
+    def atomic(self) -> Any:
+        yield
+
+
+def _view_with_clients(paths: dict[int, str]) -> tuple[LiveView, dict[int, ViewClient]]:
+    """A view whose viser server has these clients (id: the relay's address), each welcomed on connect."""
+    view, server = _view_with(None)
+    clients: dict[int, ViewClient] = {}
+    connections: dict[int, Any] = {}
+    server.get_clients = lambda: clients  # type: ignore[attr-defined]
+    server.initial_camera = RecordingCamera()  # type: ignore[attr-defined]  # the scene's, shared by all pages
+    server._websock_server = type("Websock", (), {"_live_connections": connections})()  # type: ignore[attr-defined]
+    for client_id, path in paths.items():
+        _connect(view, clients, client_id, path)
+    return view, clients
+
+
+def _connect(view: LiveView, clients: dict[int, ViewClient], client_id: int, path: str) -> ViewClient:
+    client = clients[client_id] = ViewClient(client_id, path)
+    request = type("Request", (), {"path": path})()
+    view.server._websock_server._live_connections[client_id] = type("Connection", (), {"request": request})()
+    view._welcome(client)
+    return client
+
+
+def test_a_camera_preset_turns_that_viewers_views_only_and_its_later_ones() -> None:
+    from server.viz.view import CAMERA_PRESETS
+
+    view, clients = _view_with_clients({1: "/?viewer=tablet", 2: "/?viewer=tablet", 3: "/?viewer=wall", 4: "/"})
+    view.set_camera("tablet", "front")
+    front = CAMERA_PRESETS["front"]
+    untouched = (RecordingCamera.position, RecordingCamera.look_at)
+    cameras = {i: (c.camera.position, c.camera.look_at) for i, c in clients.items()}
+    assert cameras == {1: front, 2: front, 3: untouched, 4: untouched}
+    # "Reset View" of the tablet's pages goes back to its preset too; nobody else's initial pose changes.
+    initial = [(type(m).__name__, m.initial) for m in clients[1]._websock_connection.queued]
+    assert initial[:2] == [("SetCameraPositionMessage", True), ("SetCameraLookAtMessage", True)]
+    assert clients[3]._websock_connection.queued == [] and clients[4]._websock_connection.queued == []
+    assert view.server.initial_camera.position == RecordingCamera.position  # the shared initial pose stays
+    assert (view.status("tablet")["camera_preset"], view.status("wall")["camera_preset"]) == ("front", "oblique")
+    assert view.status()["camera_preset"] == "oblique"  # no viewer named: nobody's preset
+    reloaded = _connect(view, clients, 5, "/?viewer=tablet")
+    wall_reloaded = _connect(view, clients, 6, "/?viewer=wall")
+    assert (reloaded.camera.position, reloaded.camera.look_at) == front
+    assert (wall_reloaded.camera.position, wall_reloaded.camera.look_at) == untouched
+    assert wall_reloaded._websock_connection.queued == []  # the scene's initial pose is the overview already
+    assert front[0][0] > abs(front[0][1]) and CAMERA_PRESETS["left"][0][1] > abs(CAMERA_PRESETS["left"][0][0])
+    with pytest.raises(ValueError, match="preset"):
+        view.set_camera("tablet", "behind")
+
+
+def test_visers_own_preset_buttons_turn_the_clicking_browsers_views_only() -> None:
+    from server.viz.view import CAMERA_PRESETS
+
+    view, clients = _view_with_clients({1: "/?viewer=tablet", 2: "/?viewer=tablet", 3: "/?viewer=wall", 4: "/"})
+    view._preset_clicked(clients[3], "top")
+    view._preset_clicked(clients[4], "left")  # a browser the relay did not name: the page clicked in only
+    view._preset_clicked(None, "right")  # no clicking client: nothing turns
+    positions = {i: c.camera.position for i, c in clients.items()}
+    top, left = CAMERA_PRESETS["top"][0], CAMERA_PRESETS["left"][0]
+    assert positions == {1: RecordingCamera.position, 2: RecordingCamera.position, 3: top, 4: left}
+    assert view.status("wall")["camera_preset"] == "top" and view.status("tablet")["camera_preset"] == "oblique"
 
 
 def test_visers_panel_follows_each_viewers_own_engineering_switch() -> None:
-    view, server = _view_with(None)
-    clients = {1: PanelClient(1, "/?viewer=tablet"), 2: PanelClient(2, "/?viewer=wall"), 3: PanelClient(3, "/")}
-    server.get_clients = lambda: clients  # type: ignore[attr-defined]
-    connections = {i: type("Connection", (), {"request": type("Request", (), {"path": c.path})})()
-                   for i, c in clients.items()}  # fmt: skip
-    server._websock_server = type("Websock", (), {"_live_connections": connections})()  # type: ignore[attr-defined]
-    for client in clients.values():
-        view._place_panel(client)
+    view, clients = _view_with_clients({1: "/?viewer=tablet", 2: "/?viewer=wall", 3: "/"})
     view.set_controls_visible("tablet", True)
-    later = clients[4] = PanelClient(4, "/?viewer=tablet")  # the tablet reloads its page
-    connections[4] = type("Connection", (), {"request": type("Request", (), {"path": later.path})})()
-    view._place_panel(later)
+    _connect(view, clients, 4, "/?viewer=tablet")  # the tablet reloads its page
     view.set_controls_visible("tablet", False)
     calls = {i: c.gui.main_panel.calls for i, c in clients.items()}
     assert calls == {1: ["minimize", "expand", "minimize"], 2: ["minimize"], 3: ["minimize"], 4: ["expand", "minimize"]}
