@@ -192,7 +192,10 @@ class LiveView:
 
     def camera_preset(self, viewer: str | None) -> str:
         with self._viewers_lock:
-            return self._preset_of_viewer.get(viewer, DEFAULT_PRESET) if viewer is not None else DEFAULT_PRESET
+            return self._preset_of(viewer)
+
+    def _preset_of(self, viewer: str | None) -> str:  # with _viewers_lock held
+        return self._preset_of_viewer.get(viewer, DEFAULT_PRESET) if viewer is not None else DEFAULT_PRESET
 
     def _preset_clicked(self, client: Any, preset: str) -> None:
         """A preset button of viser's own panel: the clicking browser's views turn (an unknown browser: only
@@ -251,7 +254,7 @@ class LiveView:
         with self._viewers_lock:  # held while sending, so that a switch or preset at this moment lands after
             viewer = self._viewer_of_client[client.client_id] = self._viewer_of(client)
             self._show_panel(client, viewer in self._panel_viewers)
-            preset = self._preset_of_viewer.get(viewer, DEFAULT_PRESET) if viewer is not None else DEFAULT_PRESET
+            preset = self._preset_of(viewer)
             if preset != DEFAULT_PRESET:  # the scene's initial pose is the overview already
                 self._aim(client, preset)
 
