@@ -201,9 +201,9 @@ class Worker:
         )
         freeze_garbage_collector()
         self.control.fields["worker_pid"] = os.getpid()
-        self.control.fields["worker_ready"] = 1
         self.loop.rebase()
         record, pipeline = self.pipeline.record, self.pipeline
+        ready = self.control.fields["worker_ready"]
         while True:
             lateness = self.loop.wait()
             started = time.perf_counter_ns()
@@ -222,6 +222,8 @@ class Worker:
             record["tick_compute_us"] = (time.perf_counter_ns() - started) * 1e-3
             self.telemetry.push(record)
             self.state.write(record)
+            if not ready[0]:  # ready once a first state is published: a client never reads a blank one
+                ready[0] = 1
             if not pipeline.supervisor.drives_enabled:
                 if self.shutdown_requested or self.service_gone:
                     break

@@ -55,6 +55,15 @@ def test_control_rates_outside_250_to_2000_hz_are_refused_naming_the_field(rate:
 
 
 @pytest.mark.slow
+def test_a_started_worker_has_already_published_its_state() -> None:
+    """`start` returns only once the loop has written a first state: a refusal read at once must not see the
+    blank record (hal "unconfigured"; seen in a CI run on the loaded machine)."""
+    with WorkerClient(None, "kinematic", hal_options=TOLERANT_DRIVES) as client:
+        state = client.latest_state()
+        assert (state["state"], state["hal_state"]) == ("idle", "configured")
+
+
+@pytest.mark.slow
 def test_client_session_refusal_motion_emergency_stop_and_reset() -> None:
     # A generous drive communication timeout: on a shared test machine the worker can stall for tens of ms,
     # and the drives' own stop has its own test (test_supervisor).
