@@ -14,7 +14,7 @@ import numpy as np
 
 from core.fidelity import FidelityScales
 from core.kinematics import euler_rate_matrices, rotation_matrices
-from core.robot import GRAVITY_M_S2
+from core.physics import GRAVITY_M_S2
 from core.tuning import WashoutTuningProblem, tune
 from core.vestibular import canal_transfer_function, otolith_transfer_function
 from core.washout import StreamingWashout, WashoutParameters, baseline_parameters, washout_batch

@@ -38,7 +38,8 @@ from core.kinematics import (
     stance_origin_world,
     yaw_matrix,
 )
-from core.robot import GRAVITY_M_S2, DescriptionError, SSPRobot, TwinRobot
+from core.physics import GRAVITY_M_S2
+from core.robot import DescriptionError, SSPRobot, TwinRobot
 from core.rotations import rotation_into
 
 # Anthropometry for a standing adult, as fractions of body height. Centre of mass at 0.55·H above the soles

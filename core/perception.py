@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.robot import GRAVITY_M_S2
+from core.physics import GRAVITY_M_S2
 from core.shaping import ParameterError, require_finite
 from core.vestibular import ROTATION_AXES, PerceptionThresholds
 from core.washout import body_angular_acceleration, body_rates, lever_arm_acceleration, rotate

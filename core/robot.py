@@ -22,7 +22,6 @@ from core.errors import InvalidValueError
 from core.rotations import rotation_matrix
 
 SLIDER_COUNT = 6
-GRAVITY_M_S2 = 9.80665
 
 
 class DescriptionError(InvalidValueError):

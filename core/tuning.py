@@ -41,7 +41,8 @@ from core.cues import cue_from_spec
 from core.fidelity import OBJECTIVE_NAMES, FidelityMetrics, FidelityScales, fidelity_of_signals
 from core.kinematics import IKSolution, LegViolation, twin_inverse_kinematics
 from core.perception import DEFAULT_HEAD_HEIGHT_M
-from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
+from core.physics import GRAVITY_M_S2
+from core.robot import TwinRobot, default_twin
 from core.shaping import ParameterError, require_finite, require_positive
 from core.vestibular import VestibularModel, VestibularParameters
 from core.washout import WashoutParameters, WashoutSignals, backward_rate, baseline_parameters, design, run_washout

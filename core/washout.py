@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from core.errors import refuse_unknown_fields
-from core.robot import GRAVITY_M_S2
+from core.physics import GRAVITY_M_S2
 from core.shaping import (
     ParameterError,
     filter_sections,

@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
-import benchmarks
-from benchmarks.results import record
+if TYPE_CHECKING:
+    pass
+
 from server.cli.output import console, emit, fail
 
 
 def available() -> list[str]:
+    import benchmarks
+
     return sorted(
         m.name.removeprefix("bench_") for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_")
     )
@@ -37,6 +40,8 @@ def register(app: typer.Typer) -> None:
         write_results: bool = typer.Option(False, "--write-results", help="Record the dated figures in RESULTS.md."),
     ) -> None:
         """Run a speed/latency benchmark; figures include the target and whether it was met."""
+        from benchmarks.results import record
+
         if name not in available():
             raise fail(f"bench name = {name!r}: must be one of {available()}", as_json=as_json)
         figures = importlib.import_module(f"benchmarks.bench_{name}").run(quick=quick)

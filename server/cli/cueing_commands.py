@@ -18,23 +18,20 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
+
+    from core.plan.build import PrescriptionPlan
+    from core.robot import TwinRobot
+
 import typer
 
-from core.clearance import min_clearance
-from core.kinematics import condition_number, euler_from_rotation, twin_inverse_kinematics, twin_platform_poses
-from core.perception import DEFAULT_HEAD_HEIGHT_M, head_height_m
-from core.plan.build import PrescriptionPlan, plan_prescription
-from core.plan.check import PrescriptionRejected, check_plan
-from core.plan.prescription import CUEING_ALGORITHMS, PrescriptionError
-from core.plan.timeline import prescription_timeline
-from core.robot import GRAVITY_M_S2, TwinRobot
-from core.vestibular import PerceptionThresholds
+from core.errors import InvalidValueError
+from core.physics import GRAVITY_M_S2
 from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
-from server.prescriptions.preview import perceived_at_head
+from server.cli.robot_option import ROBOT_OPTION, twin_from_option
 
 # The comparison suite: the paper's two scenarios and three clinical ones (issue 14 §5).
 SUITE: dict[str, dict[str, Any]] = {
@@ -92,11 +89,17 @@ SUITE: dict[str, dict[str, Any]] = {
 
 def _clearance_m(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
     """Smallest collision clearance (N,) m between the twin's parts (`core.clearance`)."""
+    from core.clearance import min_clearance
+
     return min_clearance(twin, poses).clearance_m
 
 
 def _condition_numbers(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
     """(N, 2) condition number of each robot's Jacobian; NaN where a rod cannot reach its rail."""
+    import numpy as np
+
+    from core.kinematics import condition_number, euler_from_rotation, twin_inverse_kinematics, twin_platform_poses
+
     solutions = twin_inverse_kinematics(twin, poses, check=False)
     result = np.full((len(poses), 2), np.nan)
     for index, (side, (positions, rotations)) in enumerate(twin_platform_poses(twin, poses).items()):
@@ -108,6 +111,10 @@ def _condition_numbers(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
 
 def _stroke_use(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
     """(N,) largest slider excursion from neutral over the room to the stroke end on that side."""
+    import numpy as np
+
+    from core.kinematics import twin_inverse_kinematics
+
     solutions = twin_inverse_kinematics(twin, np.concatenate([np.zeros((1, 6)), poses]), check=False)
     sliders = np.concatenate([solutions[side].slider_positions_m for side in twin.sides], axis=1)
     robots = [twin.robot_for(side) for side in twin.sides]
@@ -120,6 +127,16 @@ def _stroke_use(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
 
 def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient: dict[str, Any] | None = None) -> dict:
     """Plan (timed), check and judge one prescription with one algorithm; `_series` holds the curves."""
+    import numpy as np
+
+    from core.perception import DEFAULT_HEAD_HEIGHT_M, head_height_m
+    from core.plan.build import plan_prescription
+    from core.plan.check import PrescriptionRejected, check_plan
+    from core.plan.prescription import PrescriptionError
+    from core.plan.timeline import prescription_timeline
+    from core.vestibular import PerceptionThresholds
+    from server.prescriptions.preview import perceived_at_head
+
     # The body of POST /api/v1/prescriptions: its patient and note do not shape the plan; anything else is
     # validated by the one prescription model (an unknown key is refused, not dropped).
     if not isinstance(prescription, dict):
@@ -169,6 +186,8 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
 
 
 def _plot_scenario(name: str, results: dict[str, dict[str, Any]], directory: Path) -> list[str]:
+    import numpy as np
+
     plt = pyplot()
     figure, axes = plt.subplots(3, 1, figsize=(10, 10), sharex=True)
     for index, (algorithm, result) in enumerate(results.items()):
@@ -216,6 +235,8 @@ def register(app: typer.Typer) -> None:
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
         """Plan one prescription with one algorithm and judge it at the head."""
+        from core.plan.prescription import CUEING_ALGORITHMS, PrescriptionError
+
         if cueing not in CUEING_ALGORITHMS:
             raise fail(f"cueing = {cueing!r}: must be one of {list(CUEING_ALGORITHMS)}", as_json=as_json)
         try:
@@ -223,7 +244,7 @@ def register(app: typer.Typer) -> None:
             result = evaluate(body, twin_from_option(robot_file), cueing)
         except (OSError, ValueError) as error:  # unreadable file, bad JSON, or a refused field
             raise fail(str(error), as_json=as_json) from error
-        except (DescriptionError, PrescriptionError) as error:
+        except (InvalidValueError, PrescriptionError) as error:
             raise fail(str(error), as_json=as_json) from error
         result.pop("_series"), result.pop("_planning_cpu_s")
 
@@ -241,12 +262,14 @@ def register(app: typer.Typer) -> None:
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
         """Run the scenario suite through both algorithms on the twin; table (and PNGs)."""
+        from core.plan.prescription import CUEING_ALGORITHMS
+
         unknown = [name for name in scenario if name not in SUITE]
         if unknown:
             raise fail(f"scenario = {unknown[0]!r}: must be one of {list(SUITE)}", as_json=as_json)
         try:
             twin = twin_from_option(robot_file)
-        except DescriptionError as error:
+        except InvalidValueError as error:
             raise fail(str(error), as_json=as_json) from error
         rows, plots = [], []
         with progress_bar("scenarios × algorithms", 2 * len(scenario)) as advance:

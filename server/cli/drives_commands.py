@@ -11,22 +11,24 @@ import math
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    from server.hal.canopen.master import CanopenHal
+
 import typer
 
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail, progress_bar
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
-from server.hal.base import AXIS_COUNT, DriveState, HalCommand, HalError, HalReading, HardwareInterface
-from server.hal.canopen.master import CanopenHal, create_canopen_hal
-from server.hal.canopen.units import load_drive_configuration
+from server.cli.robot_option import ROBOT_OPTION, twin_from_option
 
 FEEDBACK_TIMEOUT_S = 1.0
 
 
 def grouped_transitions(hal: CanopenHal) -> list[dict[str, Any]]:
     """State changes the master saw, one entry per (cycle, from, to) with the axes that made it."""
+    from server.hal.base import AXIS_COUNT, HardwareInterface
+
     groups: dict[tuple[int, str, str], list[str]] = {}
     for cycle, axis, source, target in hal.transition_log:
         groups.setdefault((cycle, source.name, target.name), []).append(HardwareInterface.axis_name(axis))
@@ -44,6 +46,10 @@ def run_profile(hal: CanopenHal, amplitude_m: float, duration_s: float, advance:
     next SYNC waits for every TPDO of the last one, so each reading belongs to its own cycle; a cycle
     whose answers took longer than the control period is counted as late.
     """
+    import numpy as np
+
+    from server.hal.base import HalCommand, HalError, HalReading
+
     reading, command = HalReading(), HalCommand()
     hal.read(reading)
     start = reading.positions_m.copy()
@@ -93,6 +99,10 @@ def register(app: typer.Typer) -> None:
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
         """Enable all axes, home them, move them through a short profile and print the state transitions."""
+        from server.hal.base import AXIS_COUNT, DriveState, HalError, HalReading, HardwareInterface
+        from server.hal.canopen.master import create_canopen_hal
+        from server.hal.canopen.units import load_drive_configuration
+
         if not 0.0 < amplitude_mm <= 100.0:
             raise fail(f"amplitude_mm = {amplitude_mm}: must be in (0, 100] mm", as_json=as_json)
         if not 0.1 <= duration_s <= 60.0:
@@ -112,7 +122,7 @@ def register(app: typer.Typer) -> None:
                 simulate=simulate,
                 bitrate=bitrate,
             )
-        except (DescriptionError, HalError, ValueError) as error:
+        except (InvalidValueError, HalError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
         started = time.perf_counter()
         try:

@@ -8,33 +8,27 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
+
+    from core.dynamics import (
+        PayloadModel,
+        StanceTrajectory,
+    )
+    from core.robot import SSPRobot, TwinRobot
+
 import typer
 
-from core.dynamics import (
-    PAPER_ACCELERATION_AFTER_M_S2,
-    PAPER_ACCELERATION_BEFORE_M_S2,
-    PAPER_FORCE_BAND_N,
-    PAPER_STEP_TIME_S,
-    DynamicsError,
-    InverseDynamics,
-    PayloadModel,
-    StanceTrajectory,
-    TwinInverseDynamics,
-    force_summary,
-    paper_step_trajectory,
-)
-from core.kinematics import UnreachablePoseError, twin_inverse_kinematics
-from core.robot import DescriptionError, SSPRobot, TwinRobot
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
 from server.cli.robot_option import ROBOT_OPTION, twin_from_option
 
 SCENARIOS = {"paper-z": "z", "paper-y": "y"}
 SAMPLE_PERIOD_S = 0.001
 CROSS_CHECK_PERIOD_S = 0.005  # MuJoCo's inverse runs in Python per sample: every 5th ms is plenty
-BAND_SCAN_MASSES_KG = np.arange(0.0, 2001.0, 10.0)
+BAND_SCAN_STEP_KG, BAND_SCAN_LIMIT_KG = 10.0, 2000.0
 
 
 SETTINGS = ("rated-load", "patient")
@@ -44,6 +38,8 @@ def paper_setting(twin: TwinRobot) -> tuple[TwinRobot, PayloadModel]:
     """The paper's setting (§3.2, §3.3.1): each robot carries the rated load, a compact 250 kg mass at its
     platform centre. Expressed on the twin by putting each foot plate at its platform centre, so that one
     rigid payload of twice the rated load splits into the rated load on each robot."""
+    from core.dynamics import PayloadModel
+
     centred = dataclasses.replace(
         twin,
         right=dataclasses.replace(twin.right, foot_plate_offset_m=(0.0, 0.0, 0.0)),
@@ -75,12 +71,17 @@ def mass_assumptions(twin: TwinRobot, payload: PayloadModel, include_rods: bool,
 
 def band_payload_scan(robot: SSPRobot, trajectory: StanceTrajectory) -> dict[str, Any]:
     """Which compact payloads on one robot's platform centre put every joint's peak force in the band."""
-    scan_limit = dataclasses.replace(robot.mass, rated_payload_kg=float(BAND_SCAN_MASSES_KG[-1]))
+    import numpy as np
+
+    from core.dynamics import InverseDynamics, PayloadModel, force_summary
+
+    masses_kg = np.arange(0.0, BAND_SCAN_LIMIT_KG + BAND_SCAN_STEP_KG / 2, BAND_SCAN_STEP_KG)
+    scan_limit = dataclasses.replace(robot.mass, rated_payload_kg=BAND_SCAN_LIMIT_KG)
     unrated = dataclasses.replace(robot, mass=scan_limit)
     poses = trajectory.poses + np.asarray(robot.neutral_pose)
     in_band = [
         float(mass_kg)
-        for mass_kg in BAND_SCAN_MASSES_KG
+        for mass_kg in masses_kg
         if force_summary(
             InverseDynamics(unrated, PayloadModel(float(mass_kg))).slider_forces(
                 poses, trajectory.velocities, trajectory.accelerations
@@ -89,7 +90,7 @@ def band_payload_scan(robot: SSPRobot, trajectory: StanceTrajectory) -> dict[str
     ]
     return {
         "single_robot_payload_in_band_kg": [min(in_band), max(in_band)] if in_band else None,
-        "scanned_kg": [float(BAND_SCAN_MASSES_KG[0]), float(BAND_SCAN_MASSES_KG[-1])],
+        "scanned_kg": [float(masses_kg[0]), float(masses_kg[-1])],
     }
 
 
@@ -103,6 +104,18 @@ def run_scenario(
     include_rods: bool,
     progress: bool,
 ) -> tuple[dict[str, Any], StanceTrajectory, np.ndarray]:
+    import numpy as np
+
+    from core.dynamics import (
+        PAPER_ACCELERATION_AFTER_M_S2,
+        PAPER_ACCELERATION_BEFORE_M_S2,
+        PAPER_STEP_TIME_S,
+        StanceTrajectory,
+        TwinInverseDynamics,
+        force_summary,
+        paper_step_trajectory,
+    )
+    from core.kinematics import twin_inverse_kinematics
     from server.hal.sim.mjcf import SimModelOptions
     from server.hal.sim.model import TwinSimModel, rms_relative_error
 
@@ -149,6 +162,8 @@ def run_scenario(
 
 
 def plot_scenario(directory: Path, scenario: str, trajectory: StanceTrajectory, forces: np.ndarray) -> list[Path]:
+    from core.dynamics import PAPER_FORCE_BAND_N
+
     plt = pyplot()
     figure, axes = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
     axis_index = "xyz".index(SCENARIOS[scenario])
@@ -184,6 +199,9 @@ def register(app: typer.Typer) -> None:
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
         """Slider drive forces for the paper's acceleration step (5 → 0.5 m/s² at 0.1 s), checked against MuJoCo."""
+        from core.dynamics import DynamicsError, PayloadModel
+        from core.kinematics import UnreachablePoseError
+
         if scenario not in SCENARIOS:
             raise fail(f"scenario = {scenario!r}: must be one of {sorted(SCENARIOS)}", as_json=as_json)
         if setting not in SETTINGS:
@@ -202,7 +220,7 @@ def register(app: typer.Typer) -> None:
                 include_rods=not neglect_rods,
                 progress=not as_json,
             )
-        except (DescriptionError, UnreachablePoseError, DynamicsError, ValueError) as error:
+        except (InvalidValueError, UnreachablePoseError, DynamicsError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
         if plot is not None:
             data["plots"] = [str(p) for p in plot_scenario(plot, scenario, trajectory, forces)]

@@ -10,33 +10,21 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
+
+    from core.falls import (
+        FallDetectorConfig,
+        FallEvent,
+        LabelledLog,
+        MatchingWindow,
+        SessionDetections,
+    )
+
 import typer
 
-from core.falls import (
-    ANY_DETECTOR,
-    DETECTOR_NAMES,
-    ROC_PARAMETERS,
-    TUNING_GRID,
-    FallDetectorConfig,
-    FallEvent,
-    LabelledLog,
-    MatchingWindow,
-    SessionDetections,
-    detect_falls,
-    roc_curve,
-    score_detector,
-    tune_fused,
-)
-from core.patient import (
-    FootGeometry,
-    ParameterError,
-    random_patient,
-    random_perturbations,
-    simulate_trial,
-)
 from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
 
 LOG_FORMAT = "ssp-rehab-session-log/1"
@@ -58,6 +46,8 @@ COLUMN_UNITS = {
 
 
 def write_session_log(directory: Path, name: str, columns: dict[str, np.ndarray], metadata: dict[str, Any]) -> Path:
+    import numpy as np
+
     path = directory / f"{name}.npz"
     np.savez_compressed(path, **columns)  # type: ignore[arg-type]  # numpy stubs type **kwds as the flag
     sidecar = {"format": LOG_FORMAT, "session": name, "columns": {k: COLUMN_UNITS.get(k, "") for k in columns}}
@@ -66,11 +56,17 @@ def write_session_log(directory: Path, name: str, columns: dict[str, np.ndarray]
 
 
 def _stack_parquet_column(values: Any) -> np.ndarray:
+    import numpy as np
+
     return np.asarray(values.to_pylist(), dtype=float)
 
 
 def read_session_log(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Columns and sidecar metadata of one `.npz` or `.parquet` log (list columns become (N, k) arrays)."""
+    import numpy as np
+
+    from core.patient import ParameterError
+
     if path.suffix == ".npz":
         with np.load(path) as archive:
             columns = {name: archive[name] for name in archive.files}
@@ -93,11 +89,15 @@ def read_session_log(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]
 
 def support_acceleration_z(columns: dict[str, np.ndarray]) -> np.ndarray | None:
     """The support's vertical acceleration (m/s², gravity excluded), when the log has it."""
+    import numpy as np
+
     acceleration = columns.get("support_acceleration_m_s2")
     return None if acceleration is None else np.ascontiguousarray(acceleration[:, 2], dtype=float)
 
 
 def _log_paths(logs: list[Path]) -> list[Path]:
+    from core.patient import ParameterError
+
     paths: list[Path] = []
     for entry in logs:
         if entry.is_dir():
@@ -118,6 +118,10 @@ def simulate_session(
     rng: np.random.Generator, seed: int, duration_s: float, sample_period_s: float, impaired_share: float
 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """One random patient under a random perturbation schedule; ends `POST_FALL_S` after a fall."""
+    import numpy as np
+
+    from core.patient import FootGeometry, random_patient, random_perturbations, simulate_trial
+
     params = random_patient(rng, impaired_share)
     perturbations = random_perturbations(rng, duration_s)
     motion, trajectory = simulate_trial(params, perturbations, duration_s, sample_period_s, seed)
@@ -178,6 +182,8 @@ def _print_cohort(data: dict[str, Any]) -> None:
 
 def _load_truth(path: Path) -> dict[str, list[float]]:
     """{"session name": [onset_s, ...]} (a session absent from the file has no falls)."""
+    from core.patient import ParameterError
+
     data = json.loads(path.read_text())
     if not isinstance(data, dict) or not all(isinstance(v, list) for v in data.values()):
         raise ParameterError("--truth", str(path), 'must be a JSON object {"session": [onset_s, ...]}')
@@ -187,6 +193,9 @@ def _load_truth(path: Path) -> dict[str, list[float]]:
 def _detector_config(
     metadata: dict[str, Any], overrides: dict[str, Any], body_mass_kg: float | None
 ) -> FallDetectorConfig:
+    from core.falls import FallDetectorConfig
+    from core.patient import ParameterError
+
     patient = metadata.get("patient", {})
     mass = patient.get("body_mass_kg", body_mass_kg)
     if mass is None:
@@ -229,6 +238,10 @@ def labelled_log(
     onsets: list[float] | None = None,
 ) -> LabelledLog:
     """One log as the evaluation takes it; the onsets default to the sidecar's labelled falls."""
+    import numpy as np
+
+    from core.falls import LabelledLog
+
     time_s = columns["time_s"].astype(float)
     if onsets is None:
         onsets = [fall["onset_s"] for fall in metadata.get("falls", [])]
@@ -247,6 +260,8 @@ def labelled_log(
 
 def detections(logs: list[LabelledLog]) -> list[SessionDetections]:
     """Every enabled detector's events on each log, at each log's configuration."""
+    from core.falls import SessionDetections, detect_falls
+
     return [
         SessionDetections(
             log.name,
@@ -269,12 +284,16 @@ def detections(logs: list[LabelledLog]) -> list[SessionDetections]:
 
 
 def operating_threshold(config: FallDetectorConfig, detector: str) -> float:
+    from core.falls import ROC_PARAMETERS
+
     section, parameter = ROC_PARAMETERS[detector]
     return float(getattr(getattr(config, section), parameter))
 
 
 def roc_report(logs: list[LabelledLog], window: MatchingWindow, scores: list[Any]) -> dict[str, Any]:
     """Per detector: the ROC points and the operating point (the configured threshold's score)."""
+    from core.falls import ROC_PARAMETERS, roc_curve
+
     by_name = {score.detector: score for score in scores}
     report = {}
     for detector in ROC_PARAMETERS:
@@ -292,6 +311,10 @@ def roc_report(logs: list[LabelledLog], window: MatchingWindow, scores: list[Any
 
 
 def tuning_combinations() -> int:
+    import numpy as np
+
+    from core.falls import TUNING_GRID
+
     return int(np.prod([len(values) for values in TUNING_GRID.values()]))
 
 
@@ -329,6 +352,8 @@ def _plot(
     logs: dict[str, tuple[dict[str, np.ndarray], dict[str, Any]]],
     window: MatchingWindow,
 ) -> list[str]:
+    import numpy as np
+
     plt = pyplot()
     paths = []
     figure, axes = plt.subplots(figsize=(7, 4))
@@ -403,6 +428,10 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
     ) -> None:
         """Simulated sessions with labelled falls: random patients under random translation/tilt pulses."""
+        import numpy as np
+
+        from core.patient import ParameterError
+
         try:
             if not 1 <= patients <= 100_000:
                 raise ParameterError("--patients", patients, "must be in [1, 100000]")
@@ -446,6 +475,9 @@ def register(app: typer.Typer) -> None:
         plot: Path | None = typer.Option(None, "--plot", help="Directory for PNG plots."),
     ) -> None:
         """Run the fall detectors over logs: latency (median/p95), sensitivity and false alarms per hour."""
+        from core.falls import ANY_DETECTOR, DETECTOR_NAMES, MatchingWindow, score_detector
+        from core.patient import ParameterError
+
         try:
             paths = _log_paths(logs)
             window = MatchingWindow(before_s=before_s, after_s=after_s)
@@ -481,6 +513,9 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
     ) -> None:
         """Tune the fused detector's weights, references and threshold on a labelled training cohort."""
+        from core.falls import tune_fused
+        from core.patient import ParameterError
+
         try:
             paths = _log_paths(logs)
             with progress_bar("reading logs", len(paths), enabled=True) as advance:

@@ -4,27 +4,23 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
 import typer
 
-from core.kinematics import (
-    ForwardKinematics,
-    ForwardKinematicsError,
-    UnreachablePoseError,
-    inverse_kinematics,
-    platform_joints_world,
-    twin_inverse_kinematics,
-    twin_platform_poses,
-    yaw_matrix,
-)
-from core.robot import TwinRobot
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
+from server.cli.robot_option import ROBOT_OPTION, twin_from_option
+
+if TYPE_CHECKING:  # numpy and the kinematics (numba) load when a command runs, not for `--help`
+    import numpy as np
+
+    from core.robot import TwinRobot
 
 
 def pose_si_from_mm_deg(pose_mm_deg: list[float]) -> np.ndarray:
+    import numpy as np
+
     x, y, z, roll, pitch, yaw = pose_mm_deg
     return np.array([x / 1e3, y / 1e3, z / 1e3, math.radians(roll), math.radians(pitch), math.radians(yaw)])
 
@@ -50,10 +46,14 @@ def register(app: typer.Typer) -> None:
         if twin_pose:
             _twin_ik(pose, as_json, robot_file)
             return
+        import numpy as np
+
+        from core.kinematics import UnreachablePoseError, inverse_kinematics
+
         try:
             robot = twin_from_option(robot_file).robot
             solution = inverse_kinematics(robot, pose_si_from_mm_deg(list(pose)))
-        except (UnreachablePoseError, DescriptionError, ValueError) as error:
+        except (UnreachablePoseError, InvalidValueError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
         data: dict[str, Any] = {
             "pose": {
@@ -84,10 +84,14 @@ def register(app: typer.Typer) -> None:
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
         """Platform pose (mm, deg) for six slider positions, by Newton from the neutral pose."""
+        import numpy as np
+
+        from core.kinematics import ForwardKinematics, ForwardKinematicsError
+
         try:
             robot = twin_from_option(robot_file).robot
             result = ForwardKinematics(robot).solve(np.asarray(sliders) / 1e3)
-        except (ForwardKinematicsError, DescriptionError, ValueError) as error:
+        except (ForwardKinematicsError, InvalidValueError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
         pose = pose_mm_deg_from_si(result.pose)
         data = {
@@ -106,6 +110,10 @@ def register(app: typer.Typer) -> None:
 
 def twin_ik_report(twin: TwinRobot, stance_pose: np.ndarray) -> dict[str, Any]:
     """Both robots at one stance pose, world frame, mm: sliders, rod ends, foot plates, every violation."""
+    import numpy as np
+
+    from core.kinematics import platform_joints_world, twin_inverse_kinematics, twin_platform_poses, yaw_matrix
+
     solutions = twin_inverse_kinematics(twin, stance_pose[None, :], check=False)
     platforms = twin_platform_poses(twin, stance_pose[None, :])
     robots: dict[str, Any] = {}
@@ -144,7 +152,7 @@ POSE_KEYS = ["x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"]
 def _twin_ik(pose: tuple[float, ...], as_json: bool, robot_file: Path | None) -> None:
     try:
         data = twin_ik_report(twin_from_option(robot_file), pose_si_from_mm_deg(list(pose)))
-    except (DescriptionError, ValueError) as error:
+    except (InvalidValueError, ValueError) as error:
         raise fail(str(error), as_json=as_json) from error
 
     def human(d: dict[str, Any]) -> None:

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    from core.layout import LayoutCandidate, LayoutResult
+    from core.robot import TwinRobot
+
 import typer
 
-from core.layout import CLINICAL_AXES, LayoutCandidate, LayoutResult, LayoutSearchError, layout_search
-from core.robot import TwinRobot, named_twin, save_twin
-from core.workspace import axis_ranges, slice_grid, stance_reachability
 from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
 
 AXIS_LABELS = {"x": "surge (mm)", "y": "sway (mm)", "roll": "roll (deg)", "pitch": "pitch (deg)"}
@@ -26,6 +26,8 @@ def _layout_line(layout: dict[str, Any]) -> str:
 
 
 def _print(data: dict[str, Any]) -> None:
+    from core.layout import CLINICAL_AXES
+
     console.print(
         f"[bold]Layout search[/]: {data['evaluations']} layouts in {data['wall_s']:.1f} s "
         f"(population {data['population']}, {data['generations']} generations, seed {data['seed']})"
@@ -51,6 +53,8 @@ def _print(data: dict[str, Any]) -> None:
 def _compared_layouts(result: LayoutResult) -> list[tuple[str, TwinRobot, bool]]:
     """(label, twin, clearance checked) for the plots: the layout before issue 13 (its rods cross, so
     its workspace is shown without the clearance check), today's default and the recommendation."""
+    from core.robot import named_twin
+
     compared = [("before issue 13 (rods cross; clearance ignored)", named_twin("legacy-interleaved"), False)]
     if result.reference_layout is not None:
         compared.append(("today's default", result.reference_layout.twin(), True))
@@ -59,6 +63,11 @@ def _compared_layouts(result: LayoutResult) -> list[tuple[str, TwinRobot, bool]]
 
 
 def _plots(result: LayoutResult, directory: Path) -> list[str]:
+    import numpy as np
+
+    from core.layout import CLINICAL_AXES
+    from core.workspace import axis_ranges, slice_grid, stance_reachability
+
     plt = pyplot()
     compared = _compared_layouts(result)
     ranges = {
@@ -110,6 +119,9 @@ def register(app: typer.Typer) -> None:
         progress: bool = typer.Option(True, "--progress/--no-progress"),
     ) -> None:
         """Search the twin placement for the stance workspace and the drive force (pymoo NSGA-II)."""
+        from core.layout import LayoutSearchError, layout_search
+        from core.robot import save_twin
+
         try:
             with progress_bar("layout search (generations)", generations, enabled=progress) as advance:
                 result = layout_search(

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import typer
 
-# Plain imports: a module that cannot be imported (a broken real-time stack, say) fails the command line
-# at once with its traceback instead of leaving its commands, or the robot, quietly missing.
+# Plain imports of the command modules, which import their science inside each command: `--help` answers
+# at once, and a module that cannot be imported (a broken real-time stack, say) fails the command that needs
+# it with its traceback, never leaving a command quietly missing (tests/server/test_plain_imports.py).
 from server.cli import (
     bench_commands,
     cueing_commands,

@@ -10,9 +10,6 @@ from typing import Any
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-from server.jsonable import to_jsonable
 
 console = Console()
 error_console = Console(stderr=True)
@@ -21,6 +18,8 @@ error_console = Console(stderr=True)
 def emit(data: dict[str, Any], *, as_json: bool, human: Callable[[dict[str, Any]], None]) -> None:
     """Print `data` as JSON for scripts, or through `human` for people."""
     if as_json:
+        from server.jsonable import to_jsonable  # numpy: only once there is something to print
+
         typer.echo(json.dumps(to_jsonable(data), indent=2))
     else:
         human(data)
@@ -45,6 +44,15 @@ def progress_bar(description: str, total: int, *, enabled: bool = True) -> Itera
 
         yield ignore
         return
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
     columns = (
         TextColumn("{task.description}"),
         BarColumn(),

@@ -8,17 +8,14 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import typer
 
-from core.plan.build import check_prescription
-from core.plan.check import PrescriptionRejected
-from core.plan.config import DEFAULT_CONTROL_RATE_HZ
-from core.plan.prescription import PrescriptionError
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail, print_violations_by_reason, progress_bar
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
-from server.realtime.loop import LoopConfigError, validate_control_rate
+from server.cli.robot_option import ROBOT_OPTION, twin_from_option
 
+# The default is core.plan.config.DEFAULT_CONTROL_RATE_HZ, read when a command runs (that module loads numba).
+RATE_HELP = "Control rate, 250–2000 Hz (default 1000 Hz, the worker's)."
 realtime_app = typer.Typer(help="The real-time worker: prescription checks and worker runs.", no_args_is_help=True)
 
 
@@ -47,22 +44,30 @@ def _human_report(data: dict[str, Any]) -> None:
 def check(
     prescription_file: Path = typer.Argument(..., help="Prescription JSON: {'segments': [...]}"),
     patient_file: Path | None = typer.Option(None, "--patient", help="Patient JSON: body_mass_kg, height_m, preset."),
-    control_rate_hz: int = typer.Option(DEFAULT_CONTROL_RATE_HZ, "--rate", help="Control rate, 250–2000 Hz."),
+    control_rate_hz: int | None = typer.Option(None, "--rate", help=RATE_HELP),
     robot_file: Path | None = ROBOT_OPTION,
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Run a prescription offline through the batch pipeline; refuse it if any limit would be exceeded."""
+    from core.plan.build import check_prescription
+    from core.plan.check import PrescriptionRejected
+    from core.plan.config import DEFAULT_CONTROL_RATE_HZ
+    from core.plan.prescription import PrescriptionError
+    from server.realtime.loop import LoopConfigError, validate_control_rate
+
     prescription = _read_json(prescription_file, "prescription_file", as_json)
     patient = _read_json(patient_file, "patient_file", as_json)
     try:
-        rate_hz = validate_control_rate(control_rate_hz)  # the worker's range, not only what a plan allows
+        rate_hz = validate_control_rate(
+            DEFAULT_CONTROL_RATE_HZ if control_rate_hz is None else control_rate_hz
+        )  # the worker's range, not only what a plan allows
         report = check_prescription(
             prescription, twin_from_option(robot_file), control_rate_hz=rate_hz, patient=patient
         )
     except PrescriptionRejected as rejected:
         emit({"rejected": rejected.to_dict()}, as_json=as_json, human=_human_report)
         raise typer.Exit(1) from None
-    except (PrescriptionError, LoopConfigError, DescriptionError) as error:
+    except (PrescriptionError, LoopConfigError, InvalidValueError) as error:
         raise fail(str(error), as_json=as_json) from None
     emit(report.to_dict(), as_json=as_json, human=_human_report)
 
@@ -73,17 +78,24 @@ def run(
     patient_file: Path | None = typer.Option(None, "--patient", help="Patient JSON: body_mass_kg, height_m, preset."),
     seconds: float = typer.Option(10.0, "--seconds", min=0.5, max=3600.0, help="How long to let it play."),
     backend: str = typer.Option("kinematic", "--backend", help="HAL backend: kinematic or sim."),
-    control_rate_hz: int = typer.Option(DEFAULT_CONTROL_RATE_HZ, "--rate", help="Control rate, 250–2000 Hz."),
+    control_rate_hz: int | None = typer.Option(None, "--rate", help=RATE_HELP),
     robot_file: Path | None = ROBOT_OPTION,
     as_json: bool = typer.Option(False, "--json"),
 ) -> None:
     """Spawn a worker, play the prescription, stop it, and report tick timing and events."""
+    import numpy as np
+
+    from core.plan.check import PrescriptionRejected
+    from core.plan.config import DEFAULT_CONTROL_RATE_HZ
+    from core.plan.prescription import PrescriptionError
     from server.realtime.client import CommandRefused, WorkerClient, WorkerError
+    from server.realtime.loop import LoopConfigError
 
     prescription = _read_json(prescription_file, "prescription_file", as_json)
     patient = _read_json(patient_file, "patient_file", as_json)
+    rate_hz = DEFAULT_CONTROL_RATE_HZ if control_rate_hz is None else control_rate_hz
     try:
-        client = WorkerClient(str(robot_file) if robot_file else None, backend, control_rate_hz)
+        client = WorkerClient(str(robot_file) if robot_file else None, backend, rate_hz)
     except (ValueError, LoopConfigError) as error:
         raise fail(str(error), as_json=as_json) from None
     records, events = [], []

@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
-from pydantic import ValidationError
 
+if TYPE_CHECKING:
+    from pydantic import ValidationError
+
+
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError
-from server.hal.backends import BACKENDS
+from server.cli.robot_option import ROBOT_OPTION
 
 ROLES = ("admin", "therapist")
 DATA_DIR_HELP = "Holds the SQLite database and the token key (default ./data, or SSP_REHAB_DATA_DIR)."
@@ -89,8 +92,10 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run the therapist console: REST API, telemetry WebSocket, web app at / and OpenAPI at /docs."""
         import uvicorn
+        from pydantic import ValidationError
 
         from server.app import create_app
+        from server.hal.backends import BACKENDS
 
         if backend is not None and backend not in BACKENDS:
             raise fail(f"--backend = {backend!r}: must be one of {', '.join(BACKENDS)}")
@@ -113,7 +118,7 @@ def register(app: typer.Typer) -> None:
             application = create_app(settings) if workers == 1 else _prepare_web_processes(settings, options)
         except ValidationError as error:
             raise fail(_validation_message(error)) from error
-        except DescriptionError as error:
+        except InvalidValueError as error:
             raise fail(str(error)) from error
         from server.observability.logs import configure_logging
 
@@ -149,6 +154,8 @@ def register(app: typer.Typer) -> None:
         the robot daemon's first start loads them instead of compiling for minutes."""
         import time
 
+        from pydantic import ValidationError
+
         from core.robot import default_twin, load_twin
         from server.cli.output import progress_bar
         from server.realtime.pipeline import compile_tick_path
@@ -159,7 +166,7 @@ def register(app: typer.Typer) -> None:
             twin = load_twin(settings.robot_file) if settings.robot_file else default_twin()
         except ValidationError as error:
             raise fail(_validation_message(error), as_json=as_json) from error
-        except DescriptionError as error:
+        except InvalidValueError as error:
             raise fail(str(error), as_json=as_json) from error
         began = time.perf_counter()
         # The tick path is the same on every backend (it runs on an ideal HAL), as the worker compiles it.
@@ -189,6 +196,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run the robot daemon: the real-time worker, heartbeat relay, HAL, planning process and recorder
         of one robot. It owns and records every run; `serve` starts it when none runs."""
+        from pydantic import ValidationError
+
+        from server.hal.backends import BACKENDS
         from server.robotd.process import AlreadyRunning, run_robot_daemon
 
         if backend is not None and backend not in BACKENDS:
@@ -219,6 +229,8 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json"),
     ) -> None:
         """Create a clinician account (the first admin, typically). Upgrades the database first."""
+        from pydantic import ValidationError
+
         from server.db import Database, create_database_engine, upgrade_database
         from server.errors import ConflictError, InvalidFieldError
         from server.users.schemas import UserCreate

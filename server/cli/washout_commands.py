@@ -4,21 +4,22 @@ mm and degrees only in the human output, SI in the JSON keys that carry units.""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
+
+    from core import tuning
+    from core.robot import TwinRobot
+    from core.shaping import ShapingParameters
+    from core.vestibular import VestibularModel
+    from core.washout import WashoutParameters
+
 import typer
 
-from core import tuning
-from core.fidelity import platform_angular_velocity
-from core.kinematics import twin_inverse_kinematics, twin_singularity_report, violation_stretches
-from core.perception import head_specific_force, tilt_rate_check
-from core.robot import GRAVITY_M_S2, TwinRobot
-from core.shaping import CommandShaper, ParameterError, ShapingParameters
-from core.vestibular import VestibularModel
-from core.washout import WashoutParameters, paper_tilt_parameters, washout_batch
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail, print_violations_by_reason, progress_bar, pyplot, save_figure
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
+from server.cli.robot_option import ROBOT_OPTION, twin_from_option
 
 SCENARIOS = ("paper-tilt-step",)
 STEP_SAMPLE_PERIOD_S = 0.001
@@ -28,6 +29,16 @@ NEUTRAL_TOLERANCE_M, NEUTRAL_TOLERANCE_RAD = 1e-3, 1e-3  # "returned to neutral"
 
 def paper_tilt_step(twin: TwinRobot, params: WashoutParameters, shaping: ShapingParameters) -> dict[str, Any]:
     """Paper §4.3: 0.2 g specific force along +Y for 10 s, then 0; washout → shaping → twin IK."""
+    import numpy as np
+
+    from core import tuning
+    from core.fidelity import platform_angular_velocity
+    from core.kinematics import twin_inverse_kinematics, twin_singularity_report, violation_stretches
+    from core.perception import tilt_rate_check
+    from core.physics import GRAVITY_M_S2
+    from core.shaping import CommandShaper
+    from core.washout import washout_batch
+
     dt = STEP_SAMPLE_PERIOD_S
     time_s = np.arange(round((STEP_HOLD_S + STEP_REST_S) / dt)) * dt
     force = np.zeros((len(time_s), 3))
@@ -90,6 +101,8 @@ def paper_tilt_step(twin: TwinRobot, params: WashoutParameters, shaping: Shaping
 
 
 def _plot_tilt_step(series: dict[str, np.ndarray], directory: Path) -> list[str]:
+    import numpy as np
+
     plt = pyplot()
     time_s, pose, velocity = series["time_s"], series["pose"], series["velocity"]
     panels = [
@@ -118,6 +131,10 @@ def _plot_tilt_step(series: dict[str, np.ndarray], directory: Path) -> list[str]
 def _tuning_series(problem: tuning.WashoutTuningProblem, params: WashoutParameters) -> dict[str, np.ndarray]:
     """Figure 15's four curves for one parameter set: x displacement, perceived-force error along x,
     pitch angle and perceived pitch-rate error."""
+    from core.fidelity import platform_angular_velocity
+    from core.perception import head_specific_force
+    from core.washout import washout_batch
+
     trajectory = washout_batch(params, problem.sample_period_s, problem.specific_force, problem.angular_velocity)
     vestibular: VestibularModel = problem.vestibular
     pose, velocity, acceleration = trajectory.pose.T, trajectory.velocity.T, trajectory.acceleration.T
@@ -136,6 +153,8 @@ def _tuning_series(problem: tuning.WashoutTuningProblem, params: WashoutParamete
 
 
 def _plot_tuning(problem: tuning.WashoutTuningProblem, result: tuning.TuningResult, directory: Path) -> list[str]:
+    import numpy as np
+
     plt = pyplot()
     before, after = _tuning_series(problem, result.baseline), _tuning_series(problem, result.optimized)
     time_s = np.arange(len(problem.specific_force)) * problem.sample_period_s
@@ -175,11 +194,14 @@ def register(app: typer.Typer) -> None:
         robot_file: Path | None = ROBOT_OPTION,
     ) -> None:
         """Run a washout verification scenario through shaping and both robots' inverse kinematics."""
+        from core.shaping import ParameterError, ShapingParameters
+        from core.washout import paper_tilt_parameters
+
         if scenario not in SCENARIOS:
             raise fail(f"scenario = {scenario!r}: must be one of {list(SCENARIOS)}", as_json=as_json)
         try:
             data = paper_tilt_step(twin_from_option(robot_file), paper_tilt_parameters(), ShapingParameters())
-        except (DescriptionError, ParameterError, ValueError) as error:
+        except (InvalidValueError, ParameterError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
         series = data.pop("_series")
         if plot is not None:
@@ -219,10 +241,11 @@ def register(app: typer.Typer) -> None:
         tuning_input: str = typer.Option(
             "suite", "--input", help="suite (the scenario suite) or paper-square-wave (paper §4.2 alone)."
         ),
-        tilt_min: float = typer.Option(
-            tuning.TILT_COORDINATION_OFF_FRACTION,
+        tilt_min: float | None = typer.Option(
+            None,
             "--tilt-coordination-min",
-            help="Least fraction of asin(0.2) the §5 step must tilt within 10 s (0: no constraint, as the paper).",
+            help="Least fraction of asin(0.2) the §5 step must tilt within 10 s (0: no constraint, as the paper; "
+            "default 0.5, core.tuning.TILT_COORDINATION_OFF_FRACTION).",
         ),
         as_json: bool = typer.Option(False, "--json"),
         plot: Path | None = typer.Option(None, "--plot", help="Write PNG plots (paper Figure 15) to this folder."),
@@ -230,18 +253,21 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Tune [ω_a, ω_a′, ω_h] with NSGA-II on the scenario suite (or the paper's square wave); report
         baseline vs knee, any bound the knee sits on, and whether tilt coordination stayed on."""
+        from core import tuning
+        from core.shaping import ParameterError
+
         try:
             problem = tuning.WashoutTuningProblem(
                 twin=twin_from_option(robot_file),
                 tune_damping=tune_damping,
                 tuning_input=tuning_input,
-                tilt_coordination_min_fraction=tilt_min,
+                tilt_coordination_min_fraction=tuning.TILT_COORDINATION_OFF_FRACTION if tilt_min is None else tilt_min,
             )
             with progress_bar("NSGA-II generations", generations) as advance:
                 result = tuning.tune(
                     seed=seed, generations=generations, population=population, problem=problem, progress=advance
                 )
-        except (DescriptionError, ParameterError, RuntimeError) as error:
+        except (InvalidValueError, ParameterError, RuntimeError) as error:
             raise fail(str(error), as_json=as_json) from error
         data = result.to_dict()
         if plot is not None:

@@ -4,29 +4,23 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+if TYPE_CHECKING:
+    from core.workspace import (
+        AxisRange,
+        Cloud,
+        Reachability,
+    )
+
 import typer
 
-from core.workspace import (
-    AXIS_NAMES,
-    AxisRange,
-    Cloud,
-    Reachability,
-    axis_ranges,
-    reasons,
-    robot_reachability,
-    sample_cloud,
-    slice_grid,
-    stance_reachability,
-)
+from core.errors import InvalidValueError
 from server.cli.output import console, emit, fail, progress_bar, pyplot, save_figure
-from server.cli.robot_option import ROBOT_OPTION, DescriptionError, twin_from_option
+from server.cli.robot_option import ROBOT_OPTION, twin_from_option
 
 AXIS_KEYS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
-LOWEST_BIT_CODE = np.array([(value & -value).bit_length() for value in range(256)])
-AXIS_SCALE = np.array([1e3, 1e3, 1e3, *([math.degrees(1.0)] * 3)])  # SI → mm, deg at this edge
+AXIS_SCALE = (1e3, 1e3, 1e3, *([math.degrees(1.0)] * 3))  # SI → mm, deg at this edge
 
 
 def _report(ranges: list[AxisRange], cloud: Cloud, frame: str) -> dict[str, Any]:
@@ -69,6 +63,10 @@ def _print_report(data: dict[str, Any]) -> None:
 
 
 def _save_plots(reachability: Reachability, ranges: list[AxisRange], cloud: Cloud, directory: Path) -> list[str]:
+    import numpy as np
+
+    from core.workspace import AXIS_NAMES, reasons, slice_grid
+
     plt = pyplot()
     saved = []
     margin = 1.25
@@ -80,7 +78,7 @@ def _save_plots(reachability: Reachability, ranges: list[AxisRange], cloud: Clou
         values_a, values_b, flags = slice_grid(reachability, (first, second), extents, 201)
         figure, axes = plt.subplots(figsize=(6, 5))
         # Colour each point by its lowest violated limit bit (1-based); 0 is reachable.
-        codes = LOWEST_BIT_CODE[flags]
+        codes = np.array([(value & -value).bit_length() for value in range(256)])[flags]  # lowest limit bit
         image = axes.pcolormesh(
             values_a * AXIS_SCALE[first],
             values_b * AXIS_SCALE[second],
@@ -103,7 +101,7 @@ def _save_plots(reachability: Reachability, ranges: list[AxisRange], cloud: Clou
         names = [AXIS_NAMES[i] for i in indices]
         low = [ranges[i].minimum * AXIS_SCALE[i] for i in indices]
         high = [ranges[i].maximum * AXIS_SCALE[i] for i in indices]
-        cloud_min, cloud_max = (e[list(indices)] * AXIS_SCALE[list(indices)] for e in cloud.extents())
+        cloud_min, cloud_max = (e[list(indices)] * np.take(AXIS_SCALE, indices) for e in cloud.extents())
         axes.bar(names, np.subtract(high, low), bottom=low, color="tab:blue", alpha=0.7, label="single axis")
         axes.scatter(names, cloud_min, marker="v", color="k", label="6-DOF cloud extent")
         axes.scatter(names, cloud_max, marker="^", color="k")
@@ -129,11 +127,13 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Reachable range on each axis (mm, deg from neutral) under the stroke, cone, reach and singularity
         limits: bisection along each axis plus a random 6-DOF cloud."""
+        from core.workspace import axis_ranges, robot_reachability, sample_cloud, stance_reachability
+
         try:
             twin = twin_from_option(robot_file)
             reachability = stance_reachability(twin) if stance else robot_reachability(twin.robot)
             ranges = axis_ranges(reachability)
-        except (DescriptionError, ValueError) as error:
+        except (InvalidValueError, ValueError) as error:
             raise fail(str(error), as_json=as_json) from error
         with progress_bar("sampling 6-DOF poses", samples) as advance:
             cloud = sample_cloud(reachability, ranges, samples, seed=seed, progress=advance)

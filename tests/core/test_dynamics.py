@@ -23,7 +23,8 @@ from core.kinematics import (
     pose_jacobian,
     rotation_matrices,
 )
-from core.robot import GRAVITY_M_S2, DescriptionError, SSPRobot
+from core.physics import GRAVITY_M_S2
+from core.robot import DescriptionError, SSPRobot
 
 STILL = np.zeros(6)
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from core.fidelity import fidelity
-from core.robot import GRAVITY_M_S2
+from core.physics import GRAVITY_M_S2
 from core.washout import WashoutTrajectory
 
 DT = 0.001

@@ -12,7 +12,7 @@ import pytest
 
 from core.fidelity import platform_specific_force
 from core.kinematics import euler_rate_matrices, rotation_matrices
-from core.robot import GRAVITY_M_S2
+from core.physics import GRAVITY_M_S2
 from core.shaping import ParameterError
 from core.washout import (
     StreamingWashout,

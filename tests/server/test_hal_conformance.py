@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from core.patient import PatientParameters
-from core.robot import GRAVITY_M_S2, TwinRobot
+from core.physics import GRAVITY_M_S2
+from core.robot import TwinRobot
 from server.hal.base import (
     AXIS_COUNT,
     CommandRejectedError,

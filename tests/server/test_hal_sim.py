@@ -9,7 +9,8 @@ import pytest
 
 from core.dynamics import PayloadModel
 from core.patient import PatientParameters
-from core.robot import GRAVITY_M_S2, TwinRobot, named_twin
+from core.physics import GRAVITY_M_S2
+from core.robot import TwinRobot, named_twin
 from server.hal.base import CommandRejectedError, DriveState, HalCommand, HalError, HalReading, HalState
 from server.hal.sim.backend import SimHal
 from server.hal.sim.drives import ServoParameters

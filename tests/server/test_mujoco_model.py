@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from core.dynamics import PayloadModel, StanceTrajectory, TwinInverseDynamics, paper_step_trajectory
-from core.robot import GRAVITY_M_S2, TwinRobot
+from core.physics import GRAVITY_M_S2
+from core.robot import TwinRobot
 from server.hal.sim.mjcf import SimModelOptions, twin_mjcf
 from server.hal.sim.model import TwinSimModel, rms_relative_error
 

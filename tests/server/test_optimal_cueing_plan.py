@@ -12,10 +12,11 @@ from core.clearance import STOP_CLEARANCE_MARGIN_M, min_clearance
 from core.layout import LayoutCandidate
 from core.optimal_cueing import CueingWorkspace
 from core.perception import tilt_rate_check
+from core.physics import GRAVITY_M_S2
 from core.plan.build import check_prescription, plan_prescription
 from core.plan.check import PrescriptionRejected, check_plan
 from core.plan.prescription import PrescriptionError
-from core.robot import GRAVITY_M_S2, TwinRobot, default_twin
+from core.robot import TwinRobot, default_twin
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline
 from server.realtime.supervisor import SupervisorConfig

@@ -29,16 +29,27 @@ def _assert_import_error_names(result: subprocess.CompletedProcess[str], module:
     assert module in result.stderr, result.stderr
 
 
-def test_the_command_line_fails_loudly_when_the_realtime_stack_cannot_be_imported() -> None:
+def test_the_command_line_fails_loudly_when_the_realtime_stack_cannot_be_imported(tmp_path: Path) -> None:
+    # The commands load their science when they run (issue 21 §7), so the failure comes with the command that
+    # needs the module; the command is still listed, never quietly missing.
+    prescription = tmp_path / "prescription.json"
+    prescription.write_text('{"segments": []}')
     result = _run_with_broken(
         "server.realtime.loop",
-        """
+        f"""
+        import sys
+        from typer.testing import CliRunner
         from server.cli.main import app
-        print("the command line loaded")
+        listed = CliRunner().invoke(app, ["realtime", "--help"]).output
+        print("check listed" if "check" in listed else "check missing")
+        sys.argv = ["ssp-rehab", "realtime", "check", {str(prescription)!r}]
+        app()
+        print("the command ran")
         """,
     )
     _assert_import_error_names(result, "server.realtime.loop")
-    assert "the command line loaded" not in result.stdout
+    assert "check listed" in result.stdout
+    assert "the command ran" not in result.stdout
 
 
 @pytest.mark.parametrize("core_module", ["core.cues", "core.washout"])

@@ -20,7 +20,8 @@ import numpy as np
 
 from core.dynamics import PayloadModel, payload_body
 from core.kinematics import inverse_kinematics, rotation_matrices, stance_origin_world, yaw_matrix
-from core.robot import GRAVITY_M_S2, SSPRobot, TwinRobot
+from core.physics import GRAVITY_M_S2
+from core.robot import SSPRobot, TwinRobot
 
 ROD_RADIUS_M = 0.02  # a 40 mm tube: only its spin inertia uses it, and spin never changes the dynamics
 

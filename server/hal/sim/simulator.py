@@ -22,7 +22,8 @@ import numba
 import numpy as np
 
 from core.patient import PatientParameters, SimulatedPatient
-from core.robot import GRAVITY_M_S2, TwinRobot
+from core.physics import GRAVITY_M_S2
+from core.robot import TwinRobot
 from server.hal.sim.drives import ServoDrives, ServoParameters
 from server.hal.sim.mjcf import SimModelOptions
 from server.hal.sim.model import TwinSimModel
