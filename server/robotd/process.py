@@ -112,7 +112,7 @@ class RobotDaemonProcess:
         self._links_lock = threading.Lock()
         self._stop = threading.Event()
         self._worker_lost = False
-        self._worker_started_s: float | None = None
+        self._worker_restarted_s: float | None = None  # the last restart of a dead worker
         self._started_s = time.monotonic()
 
     # --- status ---------------------------------------------------------------------------------
@@ -166,8 +166,8 @@ class RobotDaemonProcess:
         details = {"pid": worker.process.pid, "exit_code": code, "signal": killed_by,
                    "last_tick": int(worker.state.read()[0]["tick"])}  # fmt: skip
         reason = f"the real-time worker died ({what}): the drives stopped on their own heartbeat loss"
-        restart = self._worker_started_s is None or (
-            time.monotonic() - self._worker_started_s >= WORKER_RESTART_MIN_INTERVAL_S
+        restart = self._worker_restarted_s is None or (
+            time.monotonic() - self._worker_restarted_s >= WORKER_RESTART_MIN_INTERVAL_S
         )
         self.set_state(
             DaemonState.FAULT if not restart else DaemonState.STARTING,
@@ -190,7 +190,6 @@ class RobotDaemonProcess:
             hal_options=hal_options(settings),
         )
         worker.start(timeout_s=WORKER_START_TIMEOUT_S)
-        self._worker_started_s = time.monotonic()
         return worker
 
     def _name_shared_memory(self, worker: WorkerClient) -> None:
@@ -199,6 +198,7 @@ class RobotDaemonProcess:
         self.paths.shared_memory.write_text("\n".join([self.status.name, *(b.name for b in blocks)]) + "\n")
 
     def _restart_worker(self, dead: WorkerClient, details: dict[str, Any]) -> None:
+        self._worker_restarted_s = time.monotonic()
         try:
             worker = self._new_worker()
             worker.latch_fault("worker_lost", details)  # shown until a therapist resets; drives stay off
