@@ -268,6 +268,8 @@ def test_kill_of_the_daemon_is_reported_at_once_and_its_run_closed_by_the_next_d
     stored, first, last = console.telemetry_ticks(run["id"])
     assert stored == last - first + 1, f"{last - first + 1 - stored} samples lost inside the recorded span"
     wait_for(console.robot_ready, 600.0, "the restarted daemon")
+    # Its fresh worker shows the stop the daemon's loss caused (`daemon_lost`) until a therapist resets.
+    assert console.post("/robot/reset").status_code == 200
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
 

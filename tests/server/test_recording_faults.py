@@ -175,6 +175,9 @@ def assert_reset_needed_then_free(console: Console, reason: str) -> None:
     reset = console.post("/robot/reset")
     assert reset.status_code == 200, reset.text
     start_ok(console, console.book())
+    console.wait_moving()
+    estop = console.post("/estop")  # the web side's latch reaches the new worker
+    assert estop.status_code == 200, estop.text
 
 
 def test_defect_18_a_killed_worker_is_restarted_and_the_stop_recorded(console: Console) -> None:
