@@ -5,10 +5,13 @@ long prescription load and a large upload, against a same-run baseline with noth
 
 Targets (issue 12): /estop request → latched p99 ≤ 5 ms and /health p99 ≤ 50 ms during a load; the
 web side notices a dead daemon within 200 ms; a web crash loses nothing; a daemon crash at most 100 ms.
+Issue 20: a data disk that fills mid-session stops the run in a controlled way within 1 s of the first
+failed write, with every sample kept (`full_disk`; alone: `python -m benchmarks.bench_faults full-disk`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import os
@@ -22,7 +25,16 @@ from typing import Any
 import httpx
 import numpy as np
 
-from benchmarks.fault_harness import EVENT_TIMEOUT_S, SHORT_SINE, Console, alive, in_background, wait_for
+from benchmarks.fault_harness import (
+    EVENT_TIMEOUT_S,
+    SHORT_SINE,
+    Console,
+    alive,
+    fill_disk,
+    in_background,
+    small_disk,
+    wait_for,
+)
 
 RATE_HZ = 1000.0
 STOP_EVENTS = ("service_lost", "controlled_stop", "drives_disabled", "run_ended")
@@ -138,6 +150,63 @@ def _estop_latched_ms(console: Console) -> list[float]:
         for e in console.events()
         if e["kind"] == "estop_reached_hal"
     ]
+
+
+def full_disk(trials: int = 3, disk_mb: int = 48) -> dict[str, Any]:
+    """The console's data directory on a tmpfs that a filler file fills mid-session, `trials` times: the
+    time from the recorder's first failed write (its `recording_failed` event) to the worker's controlled
+    stop and to the drives being off, and whether every sample before the drives were off was kept."""
+    to_stop_ms, to_drives_off_ms, complete, journal_kept = [], [], 0, 0
+    load_at_start = os.getloadavg()[0]
+    kinds = {"recording_failed", "controlled_stop", "drives_disabled", "run_ended"}
+    with tempfile.TemporaryDirectory(prefix="ssp-rehab-full-disk-") as scratch, contextlib.ExitStack() as stack:
+        try:
+            disk = stack.enter_context(small_disk(Path(scratch) / "disk", disk_mb))
+        except PermissionError as error:
+            return {"skipped": str(error)}
+        console = Console(disk / "console")
+        try:
+            console.start()
+            for _ in range(trials):
+                run_id = _start(console, segments=[{"cue": SHORT_SINE, "duration_s": 300.0}])["id"]
+                console.wait_moving()
+                wait_for(lambda r=run_id: console.run_row(r)["sample_count"] > 1000, EVENT_TIMEOUT_S, "samples")
+                journal = console.data_dir / "runs" / console.robot / f"run-{run_id}"
+                filler = fill_disk(console.data_dir)
+                try:
+                    wait_for(
+                        lambda: console.get("/robot/state").json().get("state") in ("stopped", "fault", "idle"),
+                        EVENT_TIMEOUT_S,
+                        "the robot to stop",
+                        0.05,
+                    )
+                    journal_kept += journal.is_dir()
+                finally:
+                    filler.unlink()
+                wait_for(lambda r=run_id: kinds <= {e["kind"] for e in console.events(r)}, EVENT_TIMEOUT_S, "events")
+                wait_for(lambda j=journal: not j.exists(), EVENT_TIMEOUT_S, "the journal to be stored and removed")
+                events = {e["kind"]: e for e in reversed(console.events(run_id))}  # the first of each kind
+                failed_s = _utc_s(events["recording_failed"]["utc"])
+                to_stop_ms.append((_utc_s(events["controlled_stop"]["utc"]) - failed_s) * 1e3)
+                to_drives_off_ms.append((_utc_s(events["drives_disabled"]["utc"]) - failed_s) * 1e3)
+                stored, first, last = console.telemetry_ticks(run_id)
+                complete += stored == last - first + 1 and last >= int(events["drives_disabled"]["tick"])
+                wait_for(lambda: console.health()["status"] == "ok", EVENT_TIMEOUT_S, "/health ok again")
+                console.post("/robot/reset")
+        finally:
+            console.stop()
+    return {
+        "trials": trials,
+        "first_failed_write_to_controlled_stop_ms": {"max": round(max(to_stop_ms), 1), "p50": _p(to_stop_ms, 50)},
+        "first_failed_write_to_drives_off_ms": {
+            "max": round(max(to_drives_off_ms), 1),
+            "p50": _p(to_drives_off_ms, 50),
+        },
+        "every_sample_kept": complete,
+        "journal_kept_while_the_disk_was_full": journal_kept,
+        "target_controlled_stop_within_1_s": max(to_stop_ms) <= 1000.0,
+        "load_average_1min": {"at_start": round(load_at_start, 2), "at_end": round(os.getloadavg()[0], 2)},
+    }
 
 
 def run(quick: bool = False) -> dict[str, Any]:
@@ -284,4 +353,14 @@ def run(quick: bool = False) -> dict[str, Any]:
         "daemon_kill_loses_at_most_0.1_s": (figures["kill9_daemon"].get("telemetry_lost_s") or 1e9) <= 0.1,
         "simultaneous_starts_exactly_one": figures["simultaneous_starts"]["exactly_one_started"] == rounds,
     }
+    figures["full_disk"] = full_disk(trials=1 if quick else 3)
     return figures
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] == ["full-disk"]:
+        print(json.dumps(full_disk(), indent=2))
+    else:
+        print(json.dumps(run(quick="--quick" in sys.argv), indent=2, default=str))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import errno
 import itertools
 import os
 import signal
@@ -354,3 +355,38 @@ def in_background(function: Callable[[], Any]) -> tuple[threading.Thread, list[A
     thread = threading.Thread(target=target, daemon=True)
     thread.start()
     return thread, result
+
+
+@contextlib.contextmanager
+def small_disk(directory: Path, size_mb: int) -> Iterator[Path]:
+    """A tmpfs of `size_mb` mounted at `directory` (needs root: `PermissionError` otherwise), unmounted after."""
+    directory.mkdir(parents=True, exist_ok=True)
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size_mb}m,mode=0700", "tmpfs", str(directory)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if mounted.returncode != 0:
+        raise PermissionError(f"cannot mount a tmpfs at {directory}: {mounted.stderr.strip()}")
+    try:
+        yield directory
+    finally:
+        subprocess.run(["umount", "--lazy", str(directory)], check=False)
+
+
+def fill_disk(directory: Path) -> Path:
+    """Take every free byte of the file system holding `directory` (big blocks, then pages), as a disk that
+    filled up would; delete the returned file to free the space again."""
+    filler = directory / "filler"
+    with filler.open("wb", buffering=0) as handle:
+        for block in (b"\0" * (1 << 20), b"\0" * 4096):
+            while True:
+                try:
+                    if handle.write(block) == 0:
+                        break
+                except OSError as error:
+                    if error.errno != errno.ENOSPC:
+                        raise
+                    break
+    return filler

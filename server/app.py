@@ -179,8 +179,11 @@ def _api_router() -> APIRouter:
         # A database that turned read-only after start-up is known from the write it refused (probing it
         # here would take SQLite's write lock on every health check).
         refusal: str | None = getattr(request.app.state, "database_refusal", None)
+        # The robot daemon's recorder cannot write (disk full, I/O error): runs stop, starts are refused.
+        recording_failure: str | None = daemon.get("recording_failure")
         return {
-            "status": "ok" if refusal is None else "degraded",
+            "status": "ok" if refusal is None and recording_failure is None else "degraded",
+            "recording": {"ok": recording_failure is None, "reason": recording_failure},
             "robot_connected": daemon["state"] == "ready",
             "robot": daemon,
             "database": {"writable": refusal is None, "reason": refusal},

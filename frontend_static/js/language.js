@@ -22,6 +22,12 @@ const STOP_REASONS = {
     "Next step: attend to the patient, check the drives' indicator lights and cables, then Reset the robot. Call the technician if it does not clear."],
   internal_error: ["Stopped by an internal software error.",
     "Next step: attend to the patient, then Reset the robot. Call the technician if it happens again."],
+  recording_failed: ["Stopped: the session could not be recorded (the data disk is full or failing), so the robot stopped the motion.",
+    "Next step: attend to the patient, ask the technician to free space on the console's data disk, then Reset the robot. Nothing recorded before the stop is lost."],
+  worker_lost: ["Stopped: the robot's real-time controller ended unexpectedly; the drives stopped on their own, and a new controller runs with the drives off.",
+    "Next step: attend to the patient, then Reset the robot before a new run. Tell the technician."],
+  daemon_lost: ["Stopped: the robot's control program ended unexpectedly during the run; it was started again with the drives off.",
+    "Next step: attend to the patient, then Reset the robot before a new run. Tell the technician."],
   emergency_stop: ["The emergency stop is latched.",
     "Next step: attend to the patient; when it is safe, press Reset robot in the session console. Resetting never starts motion."],
 };

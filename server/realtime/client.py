@@ -191,6 +191,14 @@ class WorkerClient:
         """The console controlling the run is gone: a controlled stop now (the watchdog's reaction, sooner)."""
         self._send("service_lost", {"reason": reason})
 
+    def recording_failed(self, details: dict[str, Any]) -> None:
+        """The daemon cannot record the run: a controlled stop now, with its reason."""
+        self._send("recording_failed", details)
+
+    def latch_fault(self, reason: str, details: dict[str, Any]) -> None:
+        """Show a stop that happened before this worker (`worker_lost`, `daemon_lost`) as a latched fault."""
+        self._send("latch_fault", {"reason": reason, "details": details})
+
     def start_motion(self) -> None:
         self._send("start")
 

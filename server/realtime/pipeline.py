@@ -244,6 +244,15 @@ class TickPipeline:
         """The command channel closed: nobody is watching, stop now rather than wait for the watchdog."""
         self.supervisor.controlled_stop(StopReason.SERVICE_LOST, {})
 
+    def recording_failed(self, details: dict[str, Any]) -> None:
+        """The run can no longer be recorded: a controlled stop (motion nobody records must not go on)."""
+        self.supervisor.controlled_stop(StopReason.RECORDING_FAILED, details)
+
+    def latch_fault(self, reason: StopReason, details: dict[str, Any]) -> None:
+        """A stop that happened outside this worker (its predecessor or the daemon died during a run):
+        latched as a fault, drives off, until a therapist resets."""
+        self._fault(reason, details)
+
     # --- the tick ---------------------------------------------------------------------------------
 
     def tick(self, lateness_ns: int) -> None:

@@ -45,6 +45,9 @@ class StopReason(enum.IntEnum):
     TRACKING_ERROR = 9
     HAL_FAULT = 10
     INTERNAL_ERROR = 11
+    RECORDING_FAILED = 12  # the daemon could not write the run's journal (disk full, I/O error)
+    WORKER_LOST = 13  # a fresh worker shows that its predecessor died; the drives stayed off
+    DAEMON_LOST = 14  # a fresh daemon's worker shows that the daemon died during a run
 
 
 HAL_STATE_CODES = {state: code for code, state in enumerate(HalState)}

@@ -135,6 +135,10 @@ class Worker:
             elif name == "service_lost":  # the daemon lost the console that controls the run
                 self.emit("service_lost", payload or {})
                 pipeline.service_lost()
+            elif name == "recording_failed":  # the daemon cannot write the run's journal
+                pipeline.recording_failed(payload or {})
+            elif name == "latch_fault":  # a fresh worker after a lost worker or daemon
+                pipeline.latch_fault(StopReason[str(payload["reason"]).upper()], payload.get("details") or {})
             elif name in ("start", "pause", "resume", "stop", "reset"):
                 getattr(pipeline, name)()
             elif name == "shutdown":

@@ -6,13 +6,20 @@ never touches the running run. Pause, resume, stop, the emergency stop, completi
 the loss of the controlling console or of the worker are decided here and end the run through the one
 `end_run`. The recorder thread drains the worker's telemetry and event rings every 20 ms into the run's
 append-only journal and hands them to the database writer (server.robotd.writer).
+
+A journal write that fails (disk full, I/O error) is a stop: the run ends with a controlled stop and a
+`recording_failed` event, everything it produced stays in memory until the database takes it, and the
+journal goes only once the database holds at least what it holds. Starts are refused until a probe
+write succeeds again; `recording_failure` says why meanwhile (the daemon's status, hence /health).
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime as dt
+import errno
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -22,6 +29,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from prometheus_client import generate_latest
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server.db import Database, write_transaction
@@ -29,7 +37,7 @@ from server.errors import ConflictError, InvalidFieldError, NotFoundError, Worke
 from server.jsonable import to_jsonable
 from server.observability.metrics import RobotMetrics, WorkerTap
 from server.realtime.telemetry import TELEMETRY_DTYPE
-from server.robotd.journal import RunJournal
+from server.robotd.journal import RunJournal, journal_counts
 from server.robotd.planner import Planner
 from server.robotd.writer import DatabaseWriter
 from server.sessions import service
@@ -47,6 +55,9 @@ TAIL_S = 10.0  # telemetry after a run ends still belongs to it: the stop that f
 TAIL_AFTER_DRIVES_OFF_S = 0.3  # and this long once the drives are off
 SHUTDOWN_WAIT_S = 5.0  # for the controlled stop of a run in motion when the daemon is shut down
 WEB_STALL_TOLERANCE_S = 1.0  # a controlling console silent this long is treated as gone
+RECORDING_PROBE_PERIOD_S = 1.0  # while the recorder cannot write, try a probe write this often
+RECORDING_PROBE_BYTES = TELEMETRY_DTYPE.itemsize * 1000  # a second of telemetry at 1 kHz must fit
+DAEMON_DETECTOR = "robot daemon"
 Listener = Callable[[list[dict[str, Any]]], None]
 
 
@@ -62,6 +73,7 @@ class ActiveRun:
     last_chunk_s: float = field(default_factory=time.monotonic)
     outcome: RunOutcome | None = None
     tail_deadline: float | None = None
+    journal_failed: bool = False  # a write failed: the rest of the run is held in memory for the database
 
 
 @dataclass
@@ -107,6 +119,9 @@ class RobotDaemon:
         self.listeners: list[Listener] = []
         self.latest_sample: dict[str, Any] | None = None
         self.telemetry_lost = 0
+        self.recording_failure: str | None = None  # why the recorder cannot write, in words (None: it can)
+        self._next_probe_s = 0.0
+        self._drain_lock = threading.Lock()  # the worker is not replaced in the middle of a drain
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._record_forever, name="robotd-recorder", daemon=True)
 
@@ -140,6 +155,7 @@ class RobotDaemon:
 
     def start_session(self, session_id: int, user_id: int, controller: str | None = None) -> int:
         """Start the booking's prescription on this robot; returns the run id. Refusals are 4xx errors."""
+        self._refuse_start_while_recording_fails()
         with self.database.session() as session:
             booking, version, patient = service.startable(session=session, session_id=session_id, robot=self.robot)
             booking_id, patient_id, version_id = booking.id, booking.patient_id, version.id
@@ -207,12 +223,19 @@ class RobotDaemon:
 
     def _confirm(self, run_id: int, session_id: int, controller: str | None) -> None:
         """The run is recorded: what arrived since `start_motion` belongs to it."""
-        journal = RunJournal(self.journal_dir, run_id, TELEMETRY_DTYPE) if self.journal_dir else None
+        journal, failure = None, None
+        if self.journal_dir is not None:
+            try:
+                journal = RunJournal(self.journal_dir, run_id, TELEMETRY_DTYPE)
+            except OSError as error:
+                failure = error if error.filename else OSError(error.errno, error.strerror, str(self.journal_dir))
         with self._lock:
             run = ActiveRun(run_id, session_id, controller, journal)
             telemetry, events = self._arming or ([], [])
             self._arming = None
             self.run, self.recent_run_id = run, run_id
+            if failure is not None:
+                self._recording_failed(run, failure)
             self._take(run, np.concatenate(telemetry) if telemetry else None, events)
 
     def control(self, session_id: int, command: service.RunCommand, user_id: int) -> int:
@@ -341,12 +364,103 @@ class RobotDaemon:
         except Exception:  # the watchdog stops it anyway once the beats end
             log.exception("could not tell the worker that the console is gone")
 
-    def worker_lost(self, reason: str) -> None:
-        """The worker process died: the drives stopped on their own heartbeat loss; close the run."""
+    def worker_lost(self, reason: str, details: dict[str, Any] | None = None) -> None:
+        """The worker process died: the drives stopped on their own heartbeat loss; what it left in its
+        rings joins the run, a `worker_lost` event records the stop, and the run closes."""
+        with contextlib.suppress(Exception):
+            self._record_once()  # the dead worker's last records and events
         with self._lock:
-            if self.run is not None:
-                self._end(self.run, RunOutcome.INTERRUPTED, reason)
-                self._release(self.run)
+            run = self.run
+            if run is not None and run.outcome is None:
+                event = self._daemon_event("worker_lost", {"what": reason, **(details or {})})
+                self._take(run, None, [event])
+                self._end(run, RunOutcome.INTERRUPTED, reason)
+                self._announce([event])
+            if run is not None:
+                self._release(run)
+
+    def replace_worker(self, worker: WorkerControl) -> None:
+        """A new worker in place of a dead one (the daemon process restarts it)."""
+        with self._drain_lock, self._lock:
+            self.worker = cast("WorkerControl", WorkerTap(worker, self.metrics))
+
+    # --- recording failures ---------------------------------------------------------------------------
+
+    def _daemon_event(self, kind: str, details: dict[str, Any]) -> dict[str, Any]:
+        tick, tick_time_s = self.clock()
+        utc = dt.datetime.now(dt.UTC).isoformat()
+        return {"kind": kind, "tick": tick, "tick_time_s": tick_time_s, "utc": utc, "detector": DAEMON_DETECTOR,
+                "details": details}  # fmt: skip
+
+    def _announce(self, events: list[dict[str, Any]]) -> None:
+        for listener in list(self.listeners):
+            try:
+                listener(events)
+            except Exception:
+                log.exception("an event listener failed")
+
+    def _journal(self, run: ActiveRun, write: Callable[[RunJournal], None]) -> None:
+        if run.journal is None or run.journal_failed:
+            return
+        try:
+            write(run.journal)
+        except OSError as error:
+            self._recording_failed(run, error)
+
+    def _recording_failed(self, run: ActiveRun, error: OSError) -> None:
+        """The run's journal cannot be written: stop the robot in a controlled way, now. Nothing is lost
+        while the daemon lives: the run's records stay in memory until the database takes them."""
+        run.journal_failed = True
+        name = errno.errorcode.get(error.errno or 0, str(error.errno))
+        self.recording_failure = (
+            f"the recorder cannot write {error.filename}: [Errno {error.errno}] {error.strerror} ({name}); "
+            "the run was stopped; free space on the data disk (or repair it) before the next session"
+        )
+        self._next_probe_s = time.monotonic() + RECORDING_PROBE_PERIOD_S
+        log.error("run %d: %s", run.run_id, self.recording_failure)
+        details = {"errno": error.errno, "error": name, "message": error.strerror, "path": str(error.filename),
+                   "samples_held_in_memory": int(sum(len(records) for records in run.pending))}  # fmt: skip
+        event = self._daemon_event("recording_failed", details)
+        self._store_events(run.run_id, [event])  # held in the writer's queue until the database takes it
+        self._announce([event])
+        if run.outcome is None:
+            self._end(run, RunOutcome.INTERRUPTED, f"recording failed: [Errno {error.errno}] {error.strerror}")
+            try:
+                self.worker.recording_failed(details)  # type: ignore[attr-defined]
+            except Exception:
+                log.exception("run %d: could not ask the worker for the controlled stop; stopping it", run.run_id)
+                with contextlib.suppress(Exception):
+                    self.worker.stop()
+
+    def _probe_recording(self) -> bool:
+        """Can the recorder write again? (A probe file of a second's telemetry, written and removed.)"""
+        if self.journal_dir is None:
+            return True
+        probe = self.journal_dir / ".write-probe"
+        try:
+            self.journal_dir.mkdir(parents=True, exist_ok=True)
+            descriptor = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+            try:
+                written = os.write(descriptor, bytes(RECORDING_PROBE_BYTES))
+                os.fsync(descriptor)
+            finally:
+                os.close(descriptor)
+            if written != RECORDING_PROBE_BYTES:
+                return False
+        except OSError:
+            return False
+        finally:
+            with contextlib.suppress(OSError):
+                probe.unlink()
+        if self.recording_failure is not None:
+            log.warning("the recorder can write again (%s)", self.journal_dir)
+        self.recording_failure = None
+        return True
+
+    def _refuse_start_while_recording_fails(self) -> None:
+        failure = self.recording_failure
+        if failure is not None and not self._probe_recording():
+            raise ConflictError(f"robot {self.robot!r} cannot start: {failure}", field="recording")
 
     # --- recording ----------------------------------------------------------------------------------
 
@@ -358,8 +472,12 @@ class RobotDaemon:
                 log.exception("robot daemon recorder: one pass failed")
 
     def _record_once(self) -> None:
-        telemetry = self.worker.drain_telemetry()
-        events = self.worker.drain_events()
+        with self._drain_lock:
+            telemetry = self.worker.drain_telemetry()
+            events = self.worker.drain_events()
+        if self.recording_failure is not None and time.monotonic() >= self._next_probe_s:
+            self._next_probe_s = time.monotonic() + RECORDING_PROBE_PERIOD_S
+            self._probe_recording()
         if telemetry is not None and len(telemetry):
             last = telemetry[-1]
             self.latest_sample = {name: last[name] for name in telemetry.dtype.names or ()}
@@ -381,23 +499,17 @@ class RobotDaemon:
                 elif time.monotonic() - run.last_chunk_s >= self.chunk_period_s:
                     self._store_chunk(run)
         if events:
-            for listener in list(self.listeners):
-                try:
-                    listener(events)
-                except Exception:
-                    log.exception("an event listener failed")
+            self._announce(events)
 
     def _take(self, run: ActiveRun, telemetry: np.ndarray | None, events: list[dict[str, Any]]) -> None:
-        """Journal first (survives any crash of the web side), then on to the database."""
+        """Into memory and the journal (survives any crash of the web side), then on to the database."""
         if telemetry is not None and len(telemetry):
             records = np.array(telemetry, copy=True)
-            if run.journal is not None:
-                run.journal.append_telemetry(records)
             run.pending.append(records)
+            self._journal(run, lambda journal: journal.append_telemetry(records))
         if events:
-            if run.journal is not None:
-                run.journal.append_events(events)
             self._store_events(run.run_id, events)
+            self._journal(run, lambda journal: journal.append_events(events))
             for event in events:
                 if event.get("kind") == "drives_disabled" and run.tail_deadline is not None:
                     run.tail_deadline = min(run.tail_deadline, time.monotonic() + TAIL_AFTER_DRIVES_OFF_S)
@@ -485,13 +597,31 @@ class RobotDaemon:
         )
 
     def _release(self, run: ActiveRun) -> None:
-        """The run's recording is complete: its last chunk goes to the database, then its journal away."""
+        """The run's recording is complete: its last chunk goes to the database, then its journal away,
+        once the database holds at least what the journal holds."""
         self._store_chunk(run)
         if self.run is run:
             self.run = None
-        journal = run.journal
-        if journal is not None:
-            self.writer.submit(lambda _s: journal.remove(), retry=True)
+        journal, journal_dir, run_id = run.journal, self.journal_dir, run.run_id
+        if journal is None or journal_dir is None:
+            return
+
+        def remove_once_stored(session: Session) -> None:
+            journaled_samples, journaled_events = journal_counts(journal_dir, run_id)
+            samples = session.scalar(
+                select(func.coalesce(func.sum(TelemetryChunk.sample_count), 0)).where(TelemetryChunk.run_id == run_id)
+            )
+            events = session.scalar(select(func.count()).select_from(SessionEvent).where(SessionEvent.run_id == run_id))
+            if int(samples or 0) < journaled_samples or int(events or 0) < journaled_events:
+                journal.close()
+                log.error(
+                    "run %d: the database holds %s samples and %s events, its journal %d and %d: journal kept at %s",
+                    run_id, samples, events, journaled_samples, journaled_events, journal.directory,
+                )  # fmt: skip
+                return
+            journal.remove()
+
+        self.writer.submit(remove_once_stored, retry=True)
 
 
 def refusal_to_dict(error: Exception) -> dict[str, Any]:

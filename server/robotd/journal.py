@@ -4,12 +4,15 @@ daemon crash at most the last write interval; the next daemon start replays what
 
 `run-<id>/telemetry.bin` holds raw `TELEMETRY_DTYPE` records back to back (`dtype.json` names the
 layout), `run-<id>/events.jsonl` one event per line. Both are written with `os.write` on an
-`O_APPEND` descriptor, so a write survives the writer's death once it returns.
+`O_APPEND` descriptor, so a write survives the writer's death once it returns. A write that fails
+(disk full, I/O error) is cut back off the file, so the journal stays a clean prefix of the run, and
+raises `OSError` naming the file.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import shutil
@@ -33,16 +36,18 @@ class RunJournal:
         self.directory.mkdir(parents=True, exist_ok=True)
         (self.directory / "dtype.json").write_text(json.dumps(np.lib.format.dtype_to_descr(dtype)))
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND
-        self._telemetry = os.open(self.directory / "telemetry.bin", flags, 0o600)
-        self._events = os.open(self.directory / "events.jsonl", flags, 0o600)
+        self.telemetry_path, self.events_path = self.directory / "telemetry.bin", self.directory / "events.jsonl"
+        self._telemetry = os.open(self.telemetry_path, flags, 0o600)
+        self._events = os.open(self.events_path, flags, 0o600)
 
     def append_telemetry(self, records: np.ndarray) -> None:
         if len(records):
-            os.write(self._telemetry, records.tobytes())
+            _append(self._telemetry, self.telemetry_path, records.tobytes())
 
     def append_events(self, events: list[dict[str, Any]]) -> None:
         if events:
-            os.write(self._events, "".join(json.dumps(to_jsonable(e)) + "\n" for e in events).encode())
+            text = "".join(json.dumps(to_jsonable(e)) + "\n" for e in events)
+            _append(self._events, self.events_path, text.encode())
 
     def close(self) -> None:
         for descriptor in (self._telemetry, self._events):
@@ -53,6 +58,34 @@ class RunJournal:
         """Once the database holds everything of the run."""
         self.close()
         shutil.rmtree(self.directory, ignore_errors=True)
+
+
+def _append(descriptor: int, path: Path, data: bytes) -> None:
+    """All of `data` at the end of the file, or nothing of it and an `OSError` naming the file."""
+    size = os.lseek(descriptor, 0, os.SEEK_END)
+    view = memoryview(data)
+    try:
+        while view:
+            written = os.write(descriptor, view)
+            if written == 0:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            view = view[written:]
+    except OSError as error:
+        with contextlib.suppress(OSError):
+            os.ftruncate(descriptor, size)  # a torn record would misalign every later one
+        raise OSError(error.errno, error.strerror, str(path)) from error
+
+
+def journal_counts(journal_dir: Path, run_id: int) -> tuple[int, int]:
+    """(telemetry records, events) a run's journal holds, without reading it all."""
+    directory = run_directory(journal_dir, run_id)
+    records = events = 0
+    with contextlib.suppress(OSError, ValueError):
+        dtype = np.dtype(np.lib.format.descr_to_dtype(_tuples(json.loads((directory / "dtype.json").read_text()))))
+        records = (directory / "telemetry.bin").stat().st_size // dtype.itemsize
+    with contextlib.suppress(OSError), (directory / "events.jsonl").open("rb") as handle:
+        events = sum(1 for line in handle if line.strip())
+    return records, events
 
 
 def read_journal(journal_dir: Path, run_id: int) -> tuple[np.ndarray | None, list[dict[str, Any]]]:

@@ -309,7 +309,9 @@ class LocalLink:
 
     def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         run = self.daemon.active_run()
-        return RobotStatus(DaemonState.READY, "in-process robot", os.getpid(), *(run or (None, None)))
+        run_id, session_id = run or (None, None)
+        failure = self.daemon.recording_failure
+        return RobotStatus(DaemonState.READY, "in-process robot", os.getpid(), run_id, session_id, failure)
 
     def latest_state(self) -> dict[str, Any]:
         return self.daemon.worker.latest_state()

@@ -12,6 +12,11 @@ and serves web processes on the Unix socket `robots/NAME.sock` with one JSON obj
 
 Start-up order: status "starting" at once, then recovery of runs a crash left open, then the worker
 (its kernels compile here), the planning process and the recorder; then "ready".
+
+A worker that dies is started again here (drives off, its predecessor's stop latched as a `worker_lost`
+fault for a therapist to reset), at most once per `WORKER_RESTART_MIN_INTERVAL_S`. A daemon that dies
+is started again by the web side's link (server.robotd.link); the robot's lock admits one daemon. If
+that daemon's recovery closed a run, its fresh worker latches a `daemon_lost` fault the same way.
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ from server.settings import Settings
 log = logging.getLogger("ssp_rehab.robotd")
 WORKER_STALL_S = 1.0  # the worker's state stopped advancing this long: hung (idle collections take ~0.3 s loaded)
 WORKER_START_TIMEOUT_S = 1800.0  # a cold numba cache on a loaded machine compiles for many minutes
+WORKER_RESTART_MIN_INTERVAL_S = 60.0  # a worker that dies again this soon is not restarted (a crash loop)
 
 
 class AlreadyRunning(RuntimeError):  # noqa: N818 — a state, not a malfunction
@@ -106,6 +112,7 @@ class RobotDaemonProcess:
         self._links_lock = threading.Lock()
         self._stop = threading.Event()
         self._worker_lost = False
+        self._worker_restarted_s: float | None = None  # the last restart of a dead worker
         self._started_s = time.monotonic()
 
     # --- status ---------------------------------------------------------------------------------
@@ -122,7 +129,8 @@ class RobotDaemonProcess:
         reason = self.reason
         if self.state is DaemonState.STARTING:  # progress while it warms up: the step and how long so far
             reason = f"{reason} ({time.monotonic() - self._started_s:.0f} s so far)"
-        self.status.publish(self.state, reason, os.getpid(), run)
+        recording_failure = self.daemon.recording_failure if self.daemon is not None else None
+        self.status.publish(self.state, reason, os.getpid(), run, recording_failure)
 
     def _beat_forever(self) -> None:
         prioritise_liveness_thread("the daemon's status beat")
@@ -136,7 +144,7 @@ class RobotDaemonProcess:
                 and not self._worker_lost
             ):
                 if not worker.process.is_alive():
-                    self._lose_worker(f"the real-time worker exited (exit code {worker.process.exitcode})")
+                    self._lose_worker(worker)
                 else:
                     sequence, now = worker.state.sequence, time.monotonic()
                     if sequence != last_sequence:
@@ -147,12 +155,68 @@ class RobotDaemonProcess:
                         self.set_state(DaemonState.FAULT, "the real-time worker stopped ticking (hung or stopped)")
             self._publish()
 
-    def _lose_worker(self, what: str) -> None:
+    def _lose_worker(self, worker: WorkerClient) -> None:
+        """The worker died: record the stop on the run, then start a new worker (in its own thread: the
+        status beat goes on meanwhile)."""
         self._worker_lost = True
-        reason = f"{what}: the drives stopped on their own heartbeat loss; restart the robot daemon"
-        self.set_state(DaemonState.FAULT, reason)
+        assert worker.process is not None
+        code = worker.process.exitcode
+        killed_by = signal.Signals(-code).name if code is not None and code < 0 else None
+        what = f"killed by {killed_by}" if killed_by else f"exit code {code}"
+        details = {"pid": worker.process.pid, "exit_code": code, "signal": killed_by,
+                   "last_tick": int(worker.state.read()[0]["tick"])}  # fmt: skip
+        reason = f"the real-time worker died ({what}): the drives stopped on their own heartbeat loss"
+        restart = self._worker_restarted_s is None or (
+            time.monotonic() - self._worker_restarted_s >= WORKER_RESTART_MIN_INTERVAL_S
+        )
+        self.set_state(
+            DaemonState.FAULT if not restart else DaemonState.STARTING,
+            f"{reason}; " + ("starting a new worker (drives off)" if restart else
+                             f"it died again within {WORKER_RESTART_MIN_INTERVAL_S:g} s: restart the robot daemon"),
+        )  # fmt: skip
         if self.daemon is not None:
-            self.daemon.worker_lost(reason)
+            self.daemon.worker_lost(reason, details)
+        if restart:
+            threading.Thread(
+                target=self._restart_worker, args=(worker, details), name="robotd-worker-restart", daemon=True
+            ).start()
+
+    def _new_worker(self) -> WorkerClient:
+        settings = self.settings
+        worker = WorkerClient(
+            str(settings.robot_file) if settings.robot_file else None,
+            settings.backend,
+            settings.control_rate_hz,
+            hal_options=hal_options(settings),
+        )
+        worker.start(timeout_s=WORKER_START_TIMEOUT_S)
+        return worker
+
+    def _name_shared_memory(self, worker: WorkerClient) -> None:
+        assert self.status is not None
+        blocks = (worker.control, worker.state, worker.telemetry, worker.events)
+        self.paths.shared_memory.write_text("\n".join([self.status.name, *(b.name for b in blocks)]) + "\n")
+
+    def _restart_worker(self, dead: WorkerClient, details: dict[str, Any]) -> None:
+        self._worker_restarted_s = time.monotonic()
+        try:
+            worker = self._new_worker()
+            worker.latch_fault("worker_lost", details)  # shown until a therapist resets; drives stay off
+        except Exception as error:
+            log.exception("could not start a new real-time worker")
+            self.set_state(DaemonState.FAULT, f"could not start a new real-time worker ({error}); restart the daemon")
+            return
+        if self.daemon is not None:
+            self.daemon.replace_worker(worker)
+        self.worker = worker
+        try:
+            dead.shutdown(timeout_s=5.0)  # its heartbeat relay and shared memory go with it
+        except Exception:
+            log.exception("the dead worker's relay or shared memory could not be freed")
+        self._name_shared_memory(worker)
+        self._worker_lost = False
+        self.set_state(DaemonState.READY, "a new real-time worker runs (drives off): reset the robot")
+        self.push({"push": "ready", **self.hello()})
 
     # --- the socket -------------------------------------------------------------------------------
 
@@ -227,6 +291,7 @@ class RobotDaemonProcess:
 
     def run(self) -> int:
         lock = take_lock(self.paths)
+        previous_pid = _pid_left_by_a_crash(self.paths)
         self.paths.pid.write_text(f"{os.getpid()}\n")
         _unlink_stale_shared_memory(self.paths)
         self.status = status = StatusBlock()
@@ -242,21 +307,20 @@ class RobotDaemonProcess:
             engine = create_database_engine(self.settings.resolved_database_url())
             upgrade_database(engine)
             database = Database(engine)
-            closed = recover_open_runs(database=database, robot=self.paths.robot, journal_dir=self.paths.journal)
+            closed = recover_open_runs(
+                database=database,
+                robot=self.paths.robot,
+                journal_dir=self.paths.journal,
+                lost_daemon_pid=previous_pid,
+            )
             if closed:
                 log.warning("closed runs left open by a crash as interrupted: %s", closed)
             self.set_state(DaemonState.STARTING, "starting: compiling the real-time kernels and starting the worker")
             settings = self.settings
-            self.worker = WorkerClient(
-                str(settings.robot_file) if settings.robot_file else None,
-                settings.backend,
-                settings.control_rate_hz,
-                hal_options=hal_options(settings),
-            )
-            self.worker.start(timeout_s=WORKER_START_TIMEOUT_S)
-            worker_blocks = (self.worker.control, self.worker.state, self.worker.telemetry, self.worker.events)
-            names = [status.name, *(block.name for block in worker_blocks)]
-            self.paths.shared_memory.write_text("\n".join(names) + "\n")
+            self.worker = self._new_worker()
+            if closed:  # the daemon before this one died during a run: a therapist resets before the next
+                self.worker.latch_fault("daemon_lost", {"pid": previous_pid, "runs": closed})
+            self._name_shared_memory(self.worker)
             self.planner = Planner(self.worker.twin_path, settings.control_rate_hz, self.worker.supervisor_config)
             self.planner.start()
             self.daemon = RobotDaemon(
@@ -303,6 +367,13 @@ class RobotDaemonProcess:
             if engine is not None:
                 engine.dispose()
             os.close(lock)
+
+
+def _pid_left_by_a_crash(paths: RobotPaths) -> int | None:
+    """The pid file of a daemon that did not end cleanly (a clean end removes it)."""
+    with contextlib.suppress(OSError, ValueError, IndexError):
+        return int(paths.pid.read_text().split()[0])
+    return None
 
 
 def _unlink_stale_shared_memory(paths: RobotPaths) -> None:

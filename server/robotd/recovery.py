@@ -1,7 +1,7 @@
 """Closing runs a crash left open: on any start (the daemon's, or a web process's while no daemon runs),
 every open run of the robot gets what its journal holds and the database lacks (telemetry after the
-last stored chunk, events not yet stored), then ends as `interrupted`, with an event, at the true time:
-the last moment anything of it was recorded."""
+last stored chunk, events not yet stored) and a `daemon_lost` event saying what is known of the stop,
+then ends as `interrupted` at the true time: the last moment anything of it was recorded."""
 
 from __future__ import annotations
 
@@ -27,19 +27,22 @@ def _event_key(kind: str, utc: dt.datetime) -> tuple[str, int]:
     return kind[:32], round(moment.timestamp() * 1000)
 
 
-def recover_open_runs(*, database: Database, robot: str, journal_dir: Path) -> list[int]:
+def recover_open_runs(
+    *, database: Database, robot: str, journal_dir: Path, lost_daemon_pid: int | None = None
+) -> list[int]:
     """Close every open run of `robot` as interrupted; returns their ids. Only call it while no daemon
-    runs for `robot` (the caller holds its lock, or found it free)."""
+    runs for `robot` (the caller holds its lock, or found it free). `lost_daemon_pid`: the pid file the
+    dead daemon left, where known."""
     with database.session() as session:
         open_runs = list(
             session.scalars(select(SessionRun.id).where(SessionRun.robot == robot, SessionRun.state.in_(ACTIVE_STATES)))
         )
     for run_id in open_runs:
-        _recover(database, run_id, journal_dir)
+        _recover(database, run_id, journal_dir, lost_daemon_pid)
     return open_runs
 
 
-def _recover(database: Database, run_id: int, journal_dir: Path) -> None:
+def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid: int | None) -> None:
     records, events = read_journal(journal_dir, run_id)
     with database.session() as session, write_transaction(session):
         run = session.get(SessionRun, run_id)
@@ -54,6 +57,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path) -> None:
         sequence = session.scalar(
             select(func.coalesce(func.max(TelemetryChunk.sequence), -1)).where(TelemetryChunk.run_id == run_id)
         )
+        recovered_samples, recovered_events = 0, 0
         if records is not None and len(records):
             missing = records[records["tick"] > last_tick]
             if len(missing):
@@ -67,6 +71,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path) -> None:
                     )
                 )
                 run.sample_count += len(missing)
+                recovered_samples = len(missing)
             last_moment = max(last_moment, dt.datetime.fromtimestamp(float(records["utc_s"][-1]), dt.UTC))
         stored_events = list(
             session.execute(select(SessionEvent.kind, SessionEvent.utc).where(SessionEvent.run_id == run_id))
@@ -79,6 +84,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path) -> None:
             last_moment = max(last_moment, utc)
             if _event_key(str(event.get("kind")), utc) in stored:
                 continue
+            recovered_events += 1
             session.add(
                 SessionEvent(
                     run_id=run_id,
@@ -88,6 +94,23 @@ def _recover(database: Database, run_id: int, journal_dir: Path) -> None:
                     utc=utc,
                     detector=str(event["detector"])[:64] if event.get("detector") else None,
                     details=to_jsonable(event.get("details") or {}),
+                )
+            )
+        if _event_key("daemon_lost", last_moment) not in stored:
+            session.add(
+                SessionEvent(
+                    run_id=run_id,
+                    kind="daemon_lost",
+                    utc=last_moment,
+                    detector="robot daemon",
+                    details={
+                        "pid": lost_daemon_pid,
+                        "what": "the robot daemon ended during the run (killed or crashed); its worker stops the "
+                        "motion when it loses the daemon, and the drives stop on their own heartbeat loss",
+                        "last_record_utc": last_moment.isoformat(),
+                        "samples_recovered_from_journal": recovered_samples,
+                        "events_recovered_from_journal": recovered_events,
+                    },
                 )
             )
     with database.session() as session:

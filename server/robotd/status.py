@@ -56,6 +56,7 @@ STATUS_DTYPE = np.dtype(
         ("active_run_id", np.int64),  # 0: none
         ("active_session_id", np.int64),
         ("reason", f"S{REASON_BYTES}"),
+        ("recording_failure", f"S{2 * REASON_BYTES}"),  # it names a path  # empty while the recorder can write
     ]
 )
 
@@ -108,6 +109,7 @@ class RobotStatus:
     pid: int | None = None
     active_run_id: int | None = None
     active_session_id: int | None = None
+    recording_failure: str | None = None  # why the daemon's recorder cannot write (disk full, I/O error)
 
     @property
     def ready(self) -> bool:
@@ -120,6 +122,7 @@ class RobotStatus:
             "pid": self.pid,
             "active_run_id": self.active_run_id,
             "active_session_id": self.active_session_id,
+            "recording_failure": self.recording_failure,
         }
 
 
@@ -134,13 +137,21 @@ class StatusBlock:
     def name(self) -> str:
         return self.seqlock.name
 
-    def publish(self, state: DaemonState, reason: str, pid: int, run: tuple[int, int] | None) -> None:
+    def publish(
+        self,
+        state: DaemonState,
+        reason: str,
+        pid: int,
+        run: tuple[int, int] | None,
+        recording_failure: str | None = None,
+    ) -> None:
         record = self._record
         record["beat_ns"] = time.monotonic_ns()
         record["state"] = int(state)
         record["pid"] = pid
         record["active_run_id"], record["active_session_id"] = run if run is not None else (0, 0)
         record["reason"] = reason.encode()[:REASON_BYTES]
+        record["recording_failure"] = (recording_failure or "").encode()[: 2 * REASON_BYTES]
         self.seqlock.write(record)
 
     def read(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
@@ -160,6 +171,7 @@ class StatusBlock:
             pid,
             run_id or None,
             session_id or None,
+            record["recording_failure"].decode(errors="replace") or None,
         )
 
     def close(self) -> None:

@@ -32,7 +32,7 @@ TERMINAL_EVENT_OUTCOMES = {
 }
 STOP_REASON_OUTCOMES = {"operator": "stopped", "completed": "completed", "limit": "limit_hit", "fall": "fall",
                         "emergency_stop": "emergency_stop", "watchdog": "interrupted",
-                        "service_lost": "interrupted"}  # fmt: skip
+                        "service_lost": "interrupted", "recording_failed": "interrupted"}  # fmt: skip
 
 
 def terminal_outcome_of(kind: str, details: dict[str, Any]) -> str | None:

@@ -37,6 +37,7 @@ def test_health_is_public_and_reports_no_robot(client: TestClient) -> None:
     assert response.status_code == 200
     assert response.json() == {
         "status": "ok",
+        "recording": {"ok": True, "reason": None},
         "robot_connected": False,
         "robot": {"state": "absent", "reason": "this console runs without a robot"},
         "database": {"writable": True, "reason": None},

@@ -189,10 +189,15 @@ def test_defect_5_a_dead_worker_is_reported_and_the_estop_says_nobody_received_i
         wait_for(lambda: not console.health().get("robot_connected"), 10.0, "/health to notice")
     except AssertionError:
         pytest.fail(f"/health still says {console.health()} {time.monotonic() - signal_sent:.1f} s after kill -9")
+    # The daemon then starts a new worker (issue 20, defect 18). Until it runs, the state is 503 and nobody
+    # receives the stop, and the answer says so; once it runs, it shows the loss and confirms the stop itself.
     state = console.get("/robot/state")
-    assert state.status_code == 503, state.text
+    assert state.status_code == 503 or state.json()["stop_reason"] == "worker_lost", state.text
     estop = console.post("/estop")
-    assert estop.status_code == 503 and NO_ROBOT_PROCESS in estop.text, estop.text
+    if estop.status_code == 200:
+        assert console.get("/robot/state").json()["estop_latched"], "a 200 without a latched emergency stop"
+    else:
+        assert estop.status_code == 503 and NO_ROBOT_PROCESS in estop.text, estop.text
 
 
 def test_defect_6_a_killed_web_process_loses_no_telemetry_and_no_events(console: Console, tmp_path: Path) -> None:
@@ -268,6 +273,8 @@ def test_kill_of_the_daemon_is_reported_at_once_and_its_run_closed_by_the_next_d
     stored, first, last = console.telemetry_ticks(run["id"])
     assert stored == last - first + 1, f"{last - first + 1 - stored} samples lost inside the recorded span"
     wait_for(console.robot_ready, 600.0, "the restarted daemon")
+    # Its fresh worker shows the stop the daemon's loss caused (`daemon_lost`) until a therapist resets.
+    assert console.post("/robot/reset").status_code == 200
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
 
