@@ -259,6 +259,8 @@ class RobotDaemonProcess:
         server = _serve_socket(self)
         engine = None
         try:
+            # Started first: its start-up overlaps the worker's; it attaches the worker's blocks once listed.
+            self.estop_listener = start_estop_listener(self.paths)
             engine = create_database_engine(self.settings.resolved_database_url())
             upgrade_database(engine)
             self.database = database = Database(engine)
@@ -292,7 +294,7 @@ class RobotDaemonProcess:
                 for link_id, web_pid in self.link_pids.items():
                     self.daemon.link_opened(link_id, web_pid)
             self.daemon.start()
-            self.estop_listener = start_estop_listener(self.paths)
+            wait_for_estop_listener(self.paths, self.estop_listener)
             self.set_state(DaemonState.READY, f"backend {settings.backend} at {settings.control_rate_hz} Hz")
             self.push({"push": "ready", **self.hello()})
             self._stop.wait()
@@ -328,8 +330,15 @@ class RobotDaemonProcess:
             os.close(lock)
 
 
+ESTOP_LISTENER_START_S = 120.0  # its imports on a loaded machine; the worker's compile usually takes longer
+
+
 def start_estop_listener(paths: RobotPaths) -> subprocess.Popen[bytes]:
     """The emergency-stop listener, with this daemon's settings (its environment) and log."""
+    from server.robotd.estop_listener import address_file
+
+    with contextlib.suppress(FileNotFoundError):
+        address_file(paths).unlink()  # a previous listener's: the page must not be sent there
     with paths.log.open("ab") as log_file:
         return subprocess.Popen(
             [
@@ -347,6 +356,22 @@ def start_estop_listener(paths: RobotPaths) -> subprocess.Popen[bytes]:
             stdout=log_file,
             stderr=subprocess.STDOUT,
         )
+
+
+def wait_for_estop_listener(paths: RobotPaths, listener: subprocess.Popen[bytes] | None) -> None:
+    """Ready only once the stop listener listens (it publishes its port), or it failed: then the pages
+    use /api/v1/estop and the log says why."""
+    from server.robotd.estop_listener import published_port
+
+    deadline = time.monotonic() + ESTOP_LISTENER_START_S
+    while listener is not None and listener.poll() is None and time.monotonic() < deadline:
+        if published_port(paths) is not None:
+            return
+        time.sleep(0.05)
+    log.error(
+        "the emergency-stop listener is not listening (exit code %s): pages use /api/v1/estop",
+        listener and listener.poll(),
+    )
 
 
 def _unlink_stale_shared_memory(paths: RobotPaths) -> None:

@@ -17,7 +17,7 @@ pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 playwright_api = pytest.importorskip("playwright.sync_api")
 expect = playwright_api.expect
 
-STOP_ANSWER_TIMEOUT_MS = 20_000  # the stop answers within a second; a loaded machine gets generous room
+STOP_ANSWER_TIMEOUT_MS = 90_000  # the stop answers within a second; a starved renderer (software WebGL) is slow to act
 RESET_TIMEOUT_S = 60.0
 TAB_PRESSES = 30
 
