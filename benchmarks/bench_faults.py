@@ -156,7 +156,7 @@ STOP_PROBE_TIMEOUT_S = 10.0
 
 def _probe_stops(url: str, headers: dict[str, str], until: threading.Event) -> dict[str, Any]:
     """POST a stop every STOP_PROBE_PERIOD_S on a new connection (as a click after a pause) until `until`."""
-    confirmed, answers = [], collections.Counter[str]()
+    confirmed, latched, answers = [], [], collections.Counter[str]()
     while not until.is_set():
         started = time.perf_counter()
         try:
@@ -164,6 +164,7 @@ def _probe_stops(url: str, headers: dict[str, str], until: threading.Event) -> d
             answers[str(response.status_code)] += 1
             if response.status_code == 200:
                 confirmed.append((time.perf_counter() - started) * 1e3)
+                latched.append(float(response.json()["confirmed_after_ms"]))
         except httpx.HTTPError as error:
             answers[type(error).__name__] += 1
         until.wait(STOP_PROBE_PERIOD_S)
@@ -173,6 +174,10 @@ def _probe_stops(url: str, headers: dict[str, str], until: threading.Event) -> d
         "confirmed_p50_ms": _p(confirmed, 50),
         "confirmed_p99_ms": _p(confirmed, 99),
         "confirmed_max_ms": round(max(confirmed), 2) if confirmed else None,
+        # The server's part: its latch → the worker showing it latched (the rest is reaching the handler).
+        "latch_to_confirmed_p50_ms": _p(latched, 50),
+        "latch_to_confirmed_p99_ms": _p(latched, 99),
+        "latch_to_confirmed_max_ms": round(max(latched), 2) if latched else None,
     }
 
 

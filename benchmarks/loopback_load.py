@@ -23,7 +23,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-UPLOAD_BYTES = 4 * 1024 * 1024 - 64 * 1024  # just under the console's 4 MiB body limit
+UPLOAD_BYTES = 3_900_000  # the JSON body (each newline escaped: one more byte a row) just under the 4 MiB limit
 CSV_HEADER = "time_s,specific_force_x_m_s2,specific_force_y_m_s2,specific_force_z_m_s2\n"
 
 
