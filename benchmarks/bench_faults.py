@@ -7,15 +7,25 @@ Targets (issue 12): /estop request → latched p99 ≤ 5 ms and /health p99 ≤ 
 web side notices a dead daemon within 200 ms; a web crash loses nothing; a daemon crash at most 100 ms.
 Issue 20: a data disk that fills mid-session stops the run in a controlled way within 1 s of the first
 failed write, with every sample kept (`full_disk`; alone: `python -m benchmarks.bench_faults full-disk`).
+
+Issue 20 (`stop_under_load`): the page's stop (the robot's stop listener) from the request to the
+confirmed latch, p50/p99/max, while the web process builds large exports, takes ~4 MiB CSV cue uploads and
+serves many concurrent clients (benchmarks/loopback_load.py, a process of its own), with the load average,
+against the old path (`POST /api/v1/estop`, through the web process) probed in the same run. Target:
+p99 ≤ 50 ms and max ≤ 200 ms, and no 503 while the daemon lives. Alone:
+`python -m benchmarks.bench_faults --stop-under-load [--quick] [--write-results]`.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import datetime as dt
 import json
 import os
 import signal
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -209,6 +219,90 @@ def full_disk(trials: int = 3, disk_mb: int = 48) -> dict[str, Any]:
     }
 
 
+STOP_PROBE_PERIOD_S = 0.2
+STOP_PROBE_TIMEOUT_S = 10.0
+
+
+def _probe_stops(url: str, headers: dict[str, str], until: threading.Event) -> dict[str, Any]:
+    """POST a stop every STOP_PROBE_PERIOD_S on a new connection (as a click after a pause) until `until`."""
+    confirmed, latched, answers = [], [], collections.Counter[str]()
+    while not until.is_set():
+        started = time.perf_counter()
+        try:
+            response = httpx.post(url, headers=headers, timeout=STOP_PROBE_TIMEOUT_S)
+            answers[str(response.status_code)] += 1
+            if response.status_code == 200:
+                confirmed.append((time.perf_counter() - started) * 1e3)
+                latched.append(float(response.json()["confirmed_after_ms"]))
+        except httpx.HTTPError as error:
+            answers[type(error).__name__] += 1
+        until.wait(STOP_PROBE_PERIOD_S)
+    return {
+        "n": sum(answers.values()),
+        "answers": dict(answers),
+        "confirmed_p50_ms": _p(confirmed, 50),
+        "confirmed_p99_ms": _p(confirmed, 99),
+        "confirmed_max_ms": round(max(confirmed), 2) if confirmed else None,
+        # The server's part: its latch → the worker showing it latched (the rest is reaching the handler).
+        "latch_to_confirmed_p50_ms": _p(latched, 50),
+        "latch_to_confirmed_p99_ms": _p(latched, 99),
+        "latch_to_confirmed_max_ms": round(max(latched), 2) if latched else None,
+    }
+
+
+def stop_under_load(console: Console, quick: bool = False) -> dict[str, Any]:
+    """Issue 20: the stop's request → confirmed latch on both paths while loopback_load keeps the web busy."""
+    record_s, load_s, clients = (10.0, 20.0, 20) if quick else (60.0, 90.0, 50)
+    session_id = console.book(segments=[{"cue": SHORT_SINE, "duration_s": record_s}])
+    run_id = console.post(f"/sessions/{session_id}/start").json()["id"]
+    wait_for(lambda: console.run_row(run_id)["state"] == "ended", record_s + 600.0, "the recorded run to end", 0.5)
+    listener = (console.health().get("estop") or {}).get("url")
+    assert listener, f"no stop listener address in /health: {console.health()}"
+    origin = {"Origin": f"http://127.0.0.1:{console.port}"}
+    patient = console.get("/patients").json()[0]["id"]
+    load = subprocess.Popen(
+        [sys.executable, "-m", "benchmarks.loopback_load", "--url", console.url, "--token", str(console.token),
+         "--seconds", str(load_s), "--export-session", str(session_id), "--exporters", "2", "--uploaders", "1",
+         "--clients", str(clients), "--patient", str(patient)],
+        env=console.env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    done = threading.Event()
+    results: dict[str, dict[str, Any]] = {}
+    paths = {"listener": (listener, origin), "old_web_route": (f"{console.url}/estop", {})}
+
+    def probe_path(name: str) -> None:
+        results[name] = _probe_stops(*paths[name], done)
+
+    probes = [threading.Thread(target=probe_path, args=(name,)) for name in paths]
+    loads = [os.getloadavg()[0]]
+    for probe in probes:
+        probe.start()
+    while load.poll() is None:
+        time.sleep(1.0)
+        loads.append(os.getloadavg()[0])
+    done.set()
+    for probe in probes:
+        probe.join(STOP_PROBE_TIMEOUT_S + 5.0)
+    output = (load.stdout.read() if load.stdout is not None else "").strip().splitlines()
+    _settle(console)
+    listener_figures = results["listener"]
+    return {
+        "load": {
+            "seconds": load_s, "concurrent_clients": clients, "exporters": 2, "uploaders": 1,
+            "recorded_run_s": record_s, "generator": json.loads(output[-1]) if output else None,
+            "load_average_1min_start_max_end": [round(loads[0], 1), round(max(loads), 1), round(loads[-1], 1)],
+        },
+        "stop_listener": listener_figures,
+        "old_web_route": results["old_web_route"],
+        "targets": {
+            "listener_p99_ms <= 50": (listener_figures["confirmed_p99_ms"] or 1e9) <= 50.0,
+            "listener_max_ms <= 200": (listener_figures["confirmed_max_ms"] or 1e9) <= 200.0,
+            "no_503_while_the_daemon_lives": "503" not in listener_figures["answers"]
+            and "503" not in results["old_web_route"]["answers"],
+        },
+    }  # fmt: skip
+
+
 def run(quick: bool = False) -> dict[str, Any]:
     rounds = 3 if quick else 20
     probes = 100 if quick else 400
@@ -218,6 +312,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         console.start()
         try:
             figures["baseline_idle"] = _baseline(console, probes // 2)
+            figures["stop_under_load"] = stop_under_load(console, quick)
 
             # An emergency stop and /health during a long prescription load (the start then fails).
             long_load = [{"cue": SHORT_SINE, "duration_s": 900.0 if quick else 3599.0}]
@@ -357,10 +452,35 @@ def run(quick: bool = False) -> dict[str, Any]:
     return figures
 
 
+def _stop_under_load_alone() -> None:
+    """`python -m benchmarks.bench_faults --stop-under-load [--quick] [--write-results]`."""
+    import argparse
+
+    from benchmarks.results import record
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--stop-under-load", action="store_true", required=True)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--write-results", action="store_true")
+    arguments = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="ssp-rehab-stop-load-") as scratch:
+        console = Console(Path(scratch) / "console")
+        console.start()
+        try:
+            figures = stop_under_load(console, arguments.quick)
+        finally:
+            console.stop()
+    print(json.dumps(figures, indent=2))
+    if arguments.write_results and not arguments.quick:
+        record("faults: stop under load", figures)
+
+
 if __name__ == "__main__":
     import sys
 
     if sys.argv[1:] == ["full-disk"]:
         print(json.dumps(full_disk(), indent=2))
+    elif "--stop-under-load" in sys.argv:
+        _stop_under_load_alone()
     else:
         print(json.dumps(run(quick="--quick" in sys.argv), indent=2, default=str))

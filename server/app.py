@@ -16,6 +16,7 @@ import logging
 import os
 from collections.abc import AsyncIterator
 from typing import Any
+from urllib.parse import urlsplit
 
 from fastapi import APIRouter, FastAPI, Request, status
 from fastapi.encoders import jsonable_encoder
@@ -24,6 +25,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import IntegrityError, InternalError, OperationalError
+from starlette.datastructures import Headers
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from core.robot import default_twin, load_twin
@@ -34,7 +36,8 @@ from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.robotd.daemon import RobotDaemon
-from server.robotd.link import LocalLink
+from server.robotd.estop_listener import page_stop_url
+from server.robotd.link import DaemonLink, LocalLink
 from server.robotd.process import daemon_running
 from server.robotd.recovery import recover_open_runs
 from server.robotd.status import RobotPaths
@@ -189,6 +192,11 @@ def _api_router() -> APIRouter:
             "database": {"writable": refusal is None, "reason": refusal},
             "web_pid": os.getpid(),  # which of the console's web processes (`serve --workers N`) answered
             "clinic_timezone": request.app.state.settings.timezone,  # the console shows every time in it
+            # Where the page sends its emergency stop (the robot's stop listener); /api/v1/estop if it fails.
+            "estop": {
+                "url": stop_listener_url(request.app, request.headers.get("host"), request.url.scheme),
+                "fallback": f"{API_PREFIX}/estop",
+            },
         }
 
     for router in (
@@ -339,7 +347,25 @@ def _security_middleware(app: FastAPI, settings: Settings) -> None:
         app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=settings.trusted_proxies)
     # Outside Starlette's outermost error middleware, so that even a crash's bare 500 carries the headers.
     build_stack = app.build_middleware_stack
-    app.build_middleware_stack = lambda: SecurityHeadersMiddleware(build_stack())  # type: ignore[method-assign]
+    app.build_middleware_stack = lambda: SecurityHeadersMiddleware(  # type: ignore[method-assign]
+        build_stack(), connect_to=lambda scope: _stop_listener_origins(app, scope)
+    )
+
+
+def stop_listener_url(app: FastAPI, host: str | None, scheme: str) -> str | None:
+    """The robot's emergency-stop listener as the page reaches it (None: no robot, or no listener yet)."""
+    if app.state.robot is None or not isinstance(app.state.robot, DaemonLink):
+        return None
+    settings: Settings = app.state.settings
+    return page_stop_url(settings, RobotPaths(settings.data_dir.resolve(), settings.robot), host, scheme)
+
+
+def _stop_listener_origins(app: FastAPI, scope: Any) -> list[str]:
+    if scope["path"] != "/" and not scope["path"].endswith(".html"):
+        return []  # only pages run scripts
+    url = stop_listener_url(app, Headers(scope=scope).get("host"), scope.get("scheme", "http"))
+    parts = urlsplit(url or "")
+    return [f"{parts.scheme}://{parts.netloc}"] if parts.scheme and parts.netloc else []
 
 
 def _install_observability(app: FastAPI, settings: Settings) -> None:

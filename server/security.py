@@ -146,25 +146,31 @@ DOCUMENTATION_POLICY = (  # their assets are served locally (server/api_docs.py)
 )
 
 
-def application_policy(scope: Scope) -> str:
+def application_policy(scope: Scope, connect_to: Iterable[str] = ()) -> str:
     """The web app's policy. The live 3D view is framed from the console itself (server/viz/proxy.py, which
-    gives viser's page a policy of its own), so 'self' covers it."""
+    gives viser's page a policy of its own), so 'self' covers it. `connect_to`: other origins the page may
+    send to (the robot's emergency-stop listener)."""
     host = Headers(scope=scope).get("host", "")
+    extra = "".join(f" {source}" for source in connect_to)
     return (
         f"{_BASE_POLICY}; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; font-src 'self'; "
-        f"connect-src 'self' ws://{host} wss://{host}; frame-src 'self'; worker-src 'self' blob:"
+        f"connect-src 'self' ws://{host} wss://{host}{extra}; frame-src 'self'; worker-src 'self' blob:"
     )
 
 
 class SecurityHeadersMiddleware:
-    def __init__(self, app: ASGIApp) -> None:
+    def __init__(self, app: ASGIApp, connect_to: Callable[[Scope], Iterable[str]] | None = None) -> None:
         self.app = app
+        self.connect_to = connect_to
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        policy = DOCUMENTATION_POLICY if scope["path"] in DOCUMENTATION_PATHS else application_policy(scope)
+        if scope["path"] in DOCUMENTATION_PATHS:
+            policy = DOCUMENTATION_POLICY
+        else:
+            policy = application_policy(scope, self.connect_to(scope) if self.connect_to is not None else ())
 
         async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":

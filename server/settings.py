@@ -107,6 +107,29 @@ class Settings(BaseSettings):
     )
     viz_port: int = Field(default=8081, ge=1, le=65535, description="Port of the 3D view (embedded by the web app).")
     viz_rate_hz: float = Field(default=30.0, ge=30.0, le=120.0, description="3D view update rate.")
+    estop_host: str = Field(
+        default="127.0.0.1",
+        description="Interface of the emergency-stop listener (a process beside the robot daemon); `serve` sets "
+        "it to its own --host.",
+    )
+    estop_port: int = Field(
+        default=0,
+        ge=0,
+        le=65535,
+        description="Port of the emergency-stop listener; 0: a free port, kept across daemon restarts when it is "
+        "still free (set one when a reverse proxy forwards to it).",
+    )
+    estop_public_url: str | None = Field(
+        default=None,
+        description="Where browsers reach the emergency-stop listener behind a reverse proxy (e.g. /estop); default: "
+        "the console's host name with estop_port.",
+    )
+    console_port: int | None = Field(
+        default=None,
+        ge=1,
+        le=65535,
+        description="The console's own port (`serve` sets it): the stop listener answers pages from that origin.",
+    )
     frontend_dir: Path | None = Field(
         default=None, description="Static clinician app; default: frontend_static/ if present."
     )

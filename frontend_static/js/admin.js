@@ -1,7 +1,7 @@
 // Administration (admins only; the API refuses others): accounts and the audit log (issue 16, build §7).
 import { get, patch, post, query } from "./api.js";
 import { words } from "./language.js";
-import { badge, banner, clear, clearErrors, confirmDialog, field, fmtDateTime, h, showError, showFieldErrors, table } from "./ui.js";
+import { badge, banner, clear, clearErrors, confirmDialog, field, fmtDateTime, h, openDialog, showError, showFieldErrors, table } from "./ui.js";
 
 const ROLES = ["therapist", "admin"];
 const AUDIT_PAGE = 100;
@@ -46,8 +46,7 @@ export async function adminPage(main, user) {
     dialog.append(form);
     document.body.append(dialog);
     dialog.addEventListener("close", () => dialog.remove());
-    dialog.showModal();
-    input.focus();
+    openDialog(dialog, input);
   }
 
   // The audit log, newest first, filtered by kind of record and user, a page at a time.

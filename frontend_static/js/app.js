@@ -7,25 +7,45 @@ import { editPatientPage, historyPage, loginPage, newPatientPage, patientPage, p
 import { clinicClock, describeRobot, setClinicZone } from "./language.js";
 import { banner, clear, clearBanner, clearErrors, engineeringOn, errorText, h, setEngineering } from "./ui.js";
 
-// The software emergency stop: ONE request, no confirmation, from every page; the key is Escape,
-// caught before anything else (also while typing in a field or with a dialog open).
+// The software emergency stop: ONE request, no confirmation, from every page and over every dialog; the key
+// is Escape, caught before anything else (also while typing in a field or with a dialog open). It goes to the
+// robot's own stop listener (its address from GET /health), which no work of the web service can hold up;
+// if that cannot be reached, to the web service's /api/v1/estop. Neither needs a login.
 export const ESTOP_KEY = "Escape";
 const estopButton = document.getElementById("estop");
+const WEB_STOP = "/api/v1/estop";
+let stopListener = null;
+function learnStopAddress(health) { if (health && health.estop) stopListener = health.estop.url || null; }
+
+async function sendStop() {
+  if (stopListener) {
+    try {
+      return await fetch(stopListener, { method: "POST", mode: "cors", credentials: "include", cache: "no-store" });
+    } catch (error) { /* unreachable (its robot daemon is gone, or a proxy does not forward it): the web route */ }
+  }
+  return fetch(WEB_STOP, { method: "POST", credentials: "same-origin", headers: { "X-Requested-With": "ssp-rehab" } });
+}
 
 async function emergencyStop() {
   estopButton.classList.add("sent");
+  const at = clinicClock(new Date());
+  const hardware = "Use the robot's red hardware stop button.";
   try {
-    const response = await fetch("/api/v1/estop", { method: "POST", credentials: "same-origin", headers: { "X-Requested-With": "ssp-rehab" } });
+    const response = await sendStop();
+    const body = await response.json().catch(() => ({ detail: response.statusText }));
     if (response.ok) {
-      banner("error", `EMERGENCY STOP sent at ${clinicClock(new Date())}. The robot is stopped; reset it from the session console once safe.`, { key: "estop", sticky: true });
-    } else if (response.status === 401) {
-      banner("error", "Not logged in: the software emergency stop needs a login. Use the robot's red hardware stop button.", { key: "estop", sticky: true });
+      banner("error", `EMERGENCY STOP sent at ${at}: latched by the robot. Reset it from the session console once safe.`, { key: "estop", sticky: true });
+    } else if (response.status === 504) {
+      banner("error", `EMERGENCY STOP requested at ${at}, NOT CONFIRMED by the robot: ${body.detail}`, { key: "estop", sticky: true });
+    } else if (response.status === 503) {
+      banner("error", `Emergency stop not received at ${at}: ${body.detail}. ${hardware}`, { key: "estop", sticky: true });
+    } else if (response.status === 409) {
+      banner("warning", `Emergency stop at ${at}: ${body.detail}.`, { key: "estop", sticky: true });
     } else {
-      const detail = await response.json().catch(() => ({ detail: response.statusText }));
-      banner("error", `Emergency stop not delivered (HTTP ${response.status}: ${detail.detail}). Use the robot's red hardware stop button.`, { key: "estop", sticky: true });
+      banner("error", `Emergency stop not delivered (HTTP ${response.status}: ${body.detail}). ${hardware}`, { key: "estop", sticky: true });
     }
   } catch (error) {
-    banner("error", "Emergency stop not delivered: the console service does not answer. Use the robot's red hardware stop button.", { key: "estop", sticky: true });
+    banner("error", `Emergency stop not delivered: neither the robot nor the console service answers. ${hardware}`, { key: "estop", sticky: true });
   }
   window.dispatchEvent(new CustomEvent("ssp:estop"));
   setTimeout(() => estopButton.classList.remove("sent"), 1500);
@@ -34,6 +54,9 @@ estopButton.addEventListener("click", emergencyStop);
 window.addEventListener("keydown", (event) => {
   if (event.key === ESTOP_KEY && !event.repeat) { event.preventDefault(); emergencyStop(); }
 }, { capture: true });
+// The listener's address is kept fresh (a restarted robot daemon may listen elsewhere).
+const refreshStopAddress = () => get("/health").then(learnStopAddress).catch(() => null);
+setInterval(refreshStopAddress, 15_000);
 
 // --- login state -----------------------------------------------------------------------------------
 let user = null;
@@ -141,7 +164,7 @@ const ROUTES = [
 ];
 let cleanup = [];
 // The clinic's zone, for every date and time shown (public, like the rest of GET /health).
-const clinicZoneKnown = get("/health").then((health) => setClinicZone(health.clinic_timezone)).catch(() => null);
+const clinicZoneKnown = get("/health").then((health) => { learnStopAddress(health); setClinicZone(health.clinic_timezone); }).catch(() => null);
 
 async function route() {
   await clinicZoneKnown;

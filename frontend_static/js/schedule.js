@@ -6,7 +6,7 @@
 // Weeks are calendar dates (YYYY-MM-DD), computed in UTC date arithmetic so that no browser zone or DST
 // change can move them; the service answers the previous and next week with each week.
 import { get, patch, post, query, request } from "./api.js";
-import { banner, clear, errorText, field, h, showError, showFieldErrors } from "./ui.js";
+import { banner, clear, errorText, field, h, openDialog, showError, showFieldErrors } from "./ui.js";
 
 const go = (hash) => { location.hash = hash; };
 
@@ -291,5 +291,5 @@ async function editBooking(booking) {
   dialog.append(form);
   document.body.append(dialog);
   dialog.addEventListener("close", () => dialog.remove());
-  dialog.showModal();
+  openDialog(dialog);
 }

@@ -127,9 +127,41 @@ export function confirmDialog({ title, body, ok, checklist = [] }) {
   return new Promise((resolve) => {
     dialog.returnValue = "";
     dialog.addEventListener("close", () => resolve(dialog.returnValue === "ok"), { once: true });
-    dialog.showModal();
-    (boxes[0] || okButton).focus();
+    openDialog(dialog, boxes[0] || okButton);
   });
+}
+
+// --- dialogs, never modal in the browser's sense (issue 20). A showModal() dialog sits in the top layer and
+// makes the rest of the page inert, the emergency stop included: the red button was dimmed, covered and out of
+// Tab's reach. Dialogs open with show() over a backdrop of our own; the page behind them is made inert here,
+// all but the emergency stop, the robot's status and the banners, and the top bar stays above the backdrop.
+const openDialogs = new Set();
+let dialogBackdrop = null;
+let topBarWatch = null;
+export function openDialog(dialog, focusTarget) {
+  const returnTo = document.activeElement;
+  openDialogs.add(dialog);
+  dialog.show();
+  layOutDialogs();
+  dialog.addEventListener("close", () => {
+    openDialogs.delete(dialog);
+    layOutDialogs();
+    if (!openDialogs.size && returnTo && returnTo.isConnected) returnTo.focus({ preventScroll: true });
+  }, { once: true });
+  const first = focusTarget || dialog.querySelector("input, select, textarea, button, a[href]");
+  if (first) first.focus();
+}
+function layOutDialogs() {
+  const open = openDialogs.size > 0;
+  document.body.classList.toggle("dialog-open", open);
+  const behind = [document.getElementById("main"), ...document.querySelectorAll(".topbar > :not(#estop):not(#robot-status)")];
+  behind.forEach((el) => { el.inert = open; });
+  if (open && !dialogBackdrop) document.body.append(dialogBackdrop = h("div.dialog-backdrop"));
+  if (!open && dialogBackdrop) { dialogBackdrop.remove(); dialogBackdrop = null; }
+  const top = document.querySelector(".sticky-top");
+  const place = () => document.documentElement.style.setProperty("--dialog-top", `${Math.round(top.getBoundingClientRect().bottom)}px`);
+  if (open && !topBarWatch) { place(); topBarWatch = new ResizeObserver(place); topBarWatch.observe(top); }
+  if (!open && topBarWatch) { topBarWatch.disconnect(); topBarWatch = null; }
 }
 
 export function field(labelText, input, { unit, hint, id } = {}) {

@@ -20,7 +20,7 @@ from starlette.requests import HTTPConnection
 from server.auth.models import AuthSession
 from server.auth.security import TokenClaims, TokenSigner
 from server.auth.throttle import LoginThrottle
-from server.db import SessionDep, utc_now
+from server.db import Database, SessionDep, utc_now
 from server.users.models import User
 
 # Declared for OpenAPI (the "Authorize" button); the checks below read the request themselves.
@@ -93,6 +93,18 @@ def user_for_claims(session: SessionDep, claims: TokenClaims) -> User | None:
             User.is_active.is_(True),
         )
     )
+
+
+def credential_of(database: Database, claims: TokenClaims | None, token_given: bool) -> tuple[int | None, str]:
+    """(user id, what a request proved), for the emergency stop's audit: a user only for a valid, unrevoked
+    login of an active account (`claims`: the token's, already checked for signature and expiry)."""
+    if not token_given:
+        return None, "none"
+    if claims is None:
+        return None, "invalid, expired or revoked token"
+    with database.session() as session:
+        user = user_for_claims(session, claims)
+        return (user.id, "login session") if user is not None else (None, "ended login session or inactive account")
 
 
 def current_user(session: SessionDep, claims: Annotated[TokenClaims, Depends(authenticated_claims)]) -> User:

@@ -4,6 +4,7 @@ when none runs) and `ssp-rehab create-user` (clinician accounts)."""
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -110,6 +111,9 @@ def register(app: typer.Typer) -> None:
             "can_interface": can_interface,
             "can_channel": can_channel,
             "can_simulated_drives": can_simulate,
+            "console_port": port,
+            # The stop listener serves the browsers this console serves, unless configured apart.
+            "estop_host": None if "SSP_REHAB_ESTOP_HOST" in os.environ else host,
         }
         application: Any  # the app, or the import string of its factory
         try:

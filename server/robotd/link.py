@@ -24,7 +24,9 @@ from typing import Any
 
 from server.realtime.shm import ControlBlock, Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
+from server.robotd import estop
 from server.robotd.daemon import RobotDaemon, refusal_from_dict
+from server.robotd.estop import ESTOP_CONFIRM_TIMEOUT_S, StopAnswer
 from server.robotd.status import (
     COMMAND_STALE_S,
     DAEMON_STALE_S,
@@ -38,10 +40,8 @@ from server.sessions.service import RunCommand
 
 log = logging.getLogger("ssp_rehab.robotd")
 
-NO_ROBOT_PROCESS = "no robot process: the drives stop on their own heartbeat loss"
 LINK_BEAT_PERIOD_S = 0.1
 RECONNECT_PERIOD_S = 0.25
-ESTOP_CONFIRM_TIMEOUT_S = 0.25  # the worker checks the flag every tick (1 ms); a live one confirms at once
 COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may take minutes
 MAX_EVENTS_KEPT = 256
 RESPAWN_PERIOD_S = 5.0
@@ -93,20 +93,27 @@ class DaemonLink:
         control, state = self._control, self._state
         if control is None or state is None:
             return None
-        control.request_estop(time.perf_counter_ns())
-        return state.sequence
+        return estop.request_stop(control, state)
 
     async def estop_confirmed(self, sequence: int | None) -> bool:
-        """True once the worker ticked after the store and shows the emergency stop latched."""
+        """True once the worker ticked after the store and shows the emergency stop latched. The last look
+        comes after the deadline: a busy event loop that woke late still sees a latch that came in time."""
         state = self._state
         if sequence is None or state is None:
             return False
         deadline = time.monotonic() + ESTOP_CONFIRM_TIMEOUT_S
         while time.monotonic() < deadline:
-            if state.sequence >= sequence + 4 and bool(state.read()[0]["estop_latched"]):  # two full writes later
+            if estop.latched_after(state, sequence):
                 return True
-            await asyncio.sleep(0.0005)
-        return False
+            await asyncio.sleep(estop.CONFIRM_POLL_S)
+        return estop.latched_after(state, sequence)
+
+    def unconfirmed_stop(self) -> StopAnswer:
+        """The truthful answer for a stop the worker did not confirm: gone, not started, or slow."""
+        from server.robotd.process import daemon_running
+
+        why = f"robot {self.robot!r}: {self.status(COMMAND_STALE_S).reason}"
+        return estop.unconfirmed(daemon_running(self.paths), self._control, why, ESTOP_CONFIRM_TIMEOUT_S)
 
     # --- state ---------------------------------------------------------------------------------------
 
@@ -306,6 +313,9 @@ class LocalLink:
 
     async def estop_confirmed(self, sequence: int | None) -> bool:
         return sequence is not None
+
+    def unconfirmed_stop(self) -> StopAnswer:
+        return estop.unconfirmed(True, None, "in-process robot", ESTOP_CONFIRM_TIMEOUT_S)
 
     def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         run = self.daemon.active_run()

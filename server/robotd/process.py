@@ -8,7 +8,9 @@ and serves web processes on the Unix socket `robots/NAME.sock` with one JSON obj
   blocks (status, control flags, latest state); the link then carries `beat`s from the console and
   pushes events to it. The daemon watches the link: its end (the console process died) or 1 s of
   silence stops a run that console started;
-- `start`, `control`, `reset`, `estop_note`, `active_run`: one request and one answer each.
+- `start`, `control`, `reset`, `estop_note`, `estop_audit`, `active_run`: one request and one answer each.
+
+Beside it runs its emergency-stop listener (`server.robotd.estop_listener`), a child process that ends with it.
 
 Start-up order: status "starting" at once, then recovery of runs a crash left open, then the worker
 (its kernels compile here), the planning process and the recorder; then "ready".
@@ -29,6 +31,8 @@ import os
 import signal
 import socket
 import socketserver
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -114,6 +118,8 @@ class RobotDaemonProcess:
         self._worker_lost = False
         self._worker_restarted_s: float | None = None  # the last restart of a dead worker
         self._started_s = time.monotonic()
+        self.database: Database | None = None
+        self.estop_listener: subprocess.Popen[bytes] | None = None
 
     # --- status ---------------------------------------------------------------------------------
 
@@ -259,11 +265,25 @@ class RobotDaemonProcess:
             return daemon.note_emergency_stop(
                 request.get("user_id"), bool(request["authenticated"]), request["credential"]
             )
+        if command == "estop_audit":  # from the stop listener, after its answer: who asked, checked here
+            return self.audit_listener_stop(request.get("token"), str(request.get("outcome")))
         if command == "active_run":
             return daemon.active_run()
         if command == "metrics":
             return daemon.metrics_text()
         raise ValueError(f"cmd = {command!r}: unknown")
+
+    def audit_listener_stop(self, token: str | None, outcome: str) -> list[int]:
+        """The stop listener's stop: who asked (the token it carried, checked as the web side checks it)."""
+        from server.auth.dependencies import credential_of
+        from server.auth.security import TokenSigner
+
+        assert self.daemon is not None and self.database is not None
+        claims = TokenSigner(self.settings.resolved_secret_key()).verify(token) if token else None
+        user_id, credential = credential_of(self.database, claims, token is not None)
+        if outcome != "confirmed":
+            credential += f"; not confirmed by the worker in time ({outcome})"
+        return self.daemon.note_emergency_stop(user_id, user_id is not None, f"{credential}; via the stop listener")
 
     def serve_link(self, connection: socket.socket, reader: Any, web_pid: int | None) -> None:
         prioritise_liveness_thread("a console link")  # its beats decide whether the console is alive
@@ -304,9 +324,11 @@ class RobotDaemonProcess:
         server = _serve_socket(self)
         engine = None
         try:
+            # Started first: its start-up overlaps the worker's; it attaches the worker's blocks once listed.
+            self.estop_listener = start_estop_listener(self.paths)
             engine = create_database_engine(self.settings.resolved_database_url())
             upgrade_database(engine)
-            database = Database(engine)
+            self.database = database = Database(engine)
             closed = recover_open_runs(
                 database=database,
                 robot=self.paths.robot,
@@ -336,6 +358,7 @@ class RobotDaemonProcess:
                 for link_id, web_pid in self.link_pids.items():
                     self.daemon.link_opened(link_id, web_pid)
             self.daemon.start()
+            wait_for_estop_listener(self.paths, self.estop_listener)
             self.set_state(DaemonState.READY, f"backend {settings.backend} at {settings.control_rate_hz} Hz")
             self.push({"push": "ready", **self.hello()})
             self._stop.wait()
@@ -347,6 +370,8 @@ class RobotDaemonProcess:
             self._stop.wait(2.0)  # long enough for attached consoles to read why
             return 1
         finally:
+            if self.estop_listener is not None:
+                self.estop_listener.terminate()
             if self.daemon is not None:
                 self.daemon.shutdown()
             if self.worker is not None and self.worker.process is not None:
@@ -374,6 +399,50 @@ def _pid_left_by_a_crash(paths: RobotPaths) -> int | None:
     with contextlib.suppress(OSError, ValueError, IndexError):
         return int(paths.pid.read_text().split()[0])
     return None
+
+
+ESTOP_LISTENER_START_S = 120.0  # its imports on a loaded machine; the worker's compile usually takes longer
+
+
+def start_estop_listener(paths: RobotPaths) -> subprocess.Popen[bytes]:
+    """The emergency-stop listener, with this daemon's settings (its environment) and log."""
+    from server.robotd.estop_listener import address_file
+
+    with contextlib.suppress(FileNotFoundError):
+        address_file(paths).unlink()  # a previous listener's: the page must not be sent there
+    with paths.log.open("ab") as log_file:
+        return subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "server.robotd.estop_listener",
+                "--robot",
+                paths.robot,
+                "--data-dir",
+                str(paths.data_dir),
+                "--parent-pid",
+                str(os.getpid()),
+            ],
+            stdin=subprocess.DEVNULL,
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+        )
+
+
+def wait_for_estop_listener(paths: RobotPaths, listener: subprocess.Popen[bytes] | None) -> None:
+    """Ready only once the stop listener listens (it publishes its port), or it failed: then the pages
+    use /api/v1/estop and the log says why."""
+    from server.robotd.estop_listener import published_port
+
+    deadline = time.monotonic() + ESTOP_LISTENER_START_S
+    while listener is not None and listener.poll() is None and time.monotonic() < deadline:
+        if published_port(paths) is not None:
+            return
+        time.sleep(0.05)
+    log.error(
+        "the emergency-stop listener is not listening (exit code %s): pages use /api/v1/estop",
+        listener and listener.poll(),
+    )
 
 
 def _unlink_stale_shared_memory(paths: RobotPaths) -> None:

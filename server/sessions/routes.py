@@ -21,6 +21,7 @@ from fastapi import (
     status,
 )
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -33,6 +34,7 @@ from server.auth.dependencies import (
     auth_state,
     authenticated_claims,
     claims_for_token,
+    credential_of,
     current_user,
     token_from_request,
     unauthorized,
@@ -44,7 +46,8 @@ from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
 from server.exports.dataset import dataset_zip
 from server.jsonable import to_jsonable
 from server.reviews.service import refuse_start_while_unacknowledged
-from server.robotd.link import NO_ROBOT_PROCESS
+from server.robotd import estop
+from server.robotd.estop import NO_ROBOT_PROCESS
 from server.robotd.status import COMMAND_STALE_S, DAEMON_STALE_S
 from server.scheduling.service import get_booking
 from server.sessions import logs, service
@@ -61,6 +64,7 @@ motion_router = APIRouter(tags=["sessions"])
 estop_router = APIRouter(tags=["sessions"])
 websocket_router = APIRouter()
 
+NO_ROBOT_HERE = "this console runs without a robot"
 NO_ROBOT = "no robot connected: the robot daemon is not attached (records, schedules and exports still work)"
 ExportFormat = Literal["csv", "parquet", "json", "c3d"]
 LAST_EXPORT_DAY = dt.date.max - dt.timedelta(days=1)  # a range ends at the next day's midnight
@@ -98,54 +102,59 @@ LiveRobotDep = Annotated[RobotLink, Depends(require_live_robot)]
 @estop_router.post(
     "/estop",
     response_model=EmergencyStopResult,
-    responses={503: {"description": "No robot process received the stop: the drives stop on their own heartbeat loss"}},
+    responses={
+        503: {
+            "description": "No robot process received the stop (the daemon or its worker is gone): the drives "
+            "stop on their own heartbeat loss"
+        },
+        504: {
+            "description": "Requested, not confirmed in time: the worker is alive but slow or stopped; the stop "
+            "stays requested and latches when it next runs"
+        },
+        409: {"description": "The robot daemon is starting: no worker runs yet, so nothing moves"},
+    },
 )
-async def emergency_stop(request: Request) -> EmergencyStopResult:
-    """Anyone at the console, logged in or not, always, one call. The first statement latches the stop in
-    the worker's shared memory, before any await, lock, database work or message; the answer is 200 only
-    once the worker confirms it. Who asked is audited afterwards, truthfully (unauthenticated included)."""
+async def emergency_stop(request: Request) -> Any:
+    """Anyone at the console, logged in or not, always, one call. For scripts: the console page uses the
+    robot's stop listener, which no web work can hold up (server/robotd/estop_listener.py). The first
+    statement latches the stop in the worker's shared memory, before any await, lock, database work or
+    message; the answer is 200 only once the worker confirms it. Who asked is audited afterwards, truthfully
+    (unauthenticated included)."""
     robot: RobotLink | None = request.app.state.robot
     sequence = robot.emergency_stop() if robot is not None else None
     latched_ns = time.perf_counter_ns()
     token = token_from_request(request, auth_state(request).cookie_name)
-    confirmed = robot is not None and await robot.estop_confirmed(sequence)
+    if robot is not None and await robot.estop_confirmed(sequence):
+        answer = estop.confirmed(latched_ns)
+    elif robot is not None:
+        answer = robot.unconfirmed_stop()
+    else:
+        answer = estop.StopAnswer(
+            estop.StopOutcome.NO_DAEMON, f"{NO_ROBOT_PROCESS} (this console runs without a robot)"
+        )
     asyncio.get_running_loop().run_in_executor(
-        None, _record_emergency_stop, request.app.state.database, auth_state(request), robot, token, confirmed
+        None, _record_emergency_stop, request.app.state.database, auth_state(request), robot, token, answer
     )
-    if not confirmed:
-        why = robot.status().reason if robot is not None else "this console runs without a robot"
-        raise WorkerUnavailableError(f"{NO_ROBOT_PROCESS} ({why})")
-    return EmergencyStopResult(
-        status="emergency stop latched by the robot",
-        utc=dt.datetime.now(dt.UTC),
-        confirmed_after_ms=round((time.perf_counter_ns() - latched_ns) * 1e-6, 3),
-    )
-
-
-def _credential(database: Database, state: AuthState, token: str | None) -> tuple[int | None, str]:
-    """(user id, what the request proved): a user only for a valid, unrevoked login of an active account."""
-    if not token:
-        return None, "none"
-    claims = claims_for_token(token, state)
-    if claims is None:
-        return None, "invalid, expired or revoked token"
-    with database.session() as session:
-        user = user_for_claims(session, claims)
-        return (user.id, "login session") if user is not None else (None, "ended login session or inactive account")
+    if answer.outcome is estop.StopOutcome.CONFIRMED:
+        return EmergencyStopResult(
+            status=estop.ESTOP_LATCHED, utc=dt.datetime.now(dt.UTC), confirmed_after_ms=answer.confirmed_after_ms
+        )
+    return JSONResponse(answer.body(), status_code=answer.http_status)
 
 
 def _record_emergency_stop(
-    database: Database, state: AuthState, robot: RobotLink | None, token: str | None, confirmed: bool
+    database: Database, state: AuthState, robot: RobotLink | None, token: str | None, answer: estop.StopAnswer
 ) -> None:
     try:
-        user_id, credential = _credential(database, state, token)
-        if confirmed and robot is not None:
-            try:
+        user_id, credential = credential_of(database, claims_for_token(token, state), bool(token))
+        if answer.outcome is not estop.StopOutcome.CONFIRMED:
+            credential += f"; not confirmed by the worker ({answer.outcome.value})"
+        if robot is not None and answer.outcome is not estop.StopOutcome.NO_DAEMON:
+            try:  # the daemon records it and ends the run (a slow one when it runs again)
                 robot.note_emergency_stop(user_id, user_id is not None, credential)
                 return
             except Exception:
                 logger.exception("the robot daemon did not take the emergency stop's record; the console keeps it")
-        credential += "" if confirmed else "; not received: no robot process"
         with database.session() as session:
             service.record_emergency_stop(
                 session=session,

@@ -12,6 +12,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from server.robotd.estop import StopAnswer
 from server.robotd.link import DaemonLink, ensure_daemon
 from server.robotd.status import RobotPaths, RobotStatus
 from server.settings import Settings
@@ -46,6 +47,7 @@ class RobotLink(Protocol):
     def close(self) -> None: ...
     def emergency_stop(self) -> int | None: ...
     async def estop_confirmed(self, sequence: int | None) -> bool: ...
+    def unconfirmed_stop(self) -> StopAnswer: ...
     def status(self, stale_s: float = ...) -> RobotStatus: ...
     def latest_state(self) -> dict[str, Any]: ...
     def frame(self) -> dict[str, Any]: ...
@@ -67,6 +69,9 @@ DAEMON_SETTINGS = (
     "can_simulated_drives",
     "drive_communication_timeout_s",
     "log_flush_interval_s",
+    "estop_host",
+    "estop_port",
+    "console_port",
 )
 
 
