@@ -3,8 +3,10 @@ recorder at least every 100 ms, before the database sees them. A web crash then 
 daemon crash at most the last write interval; the next daemon start replays what the database lacks.
 
 `run-<id>/telemetry.bin` holds raw `TELEMETRY_DTYPE` records back to back (`dtype.json` names the
-layout), `run-<id>/events.jsonl` one event per line. Both are written with `os.write` on an
-`O_APPEND` descriptor, so a write survives the writer's death once it returns.
+layout), `run-<id>/events.jsonl` one event per line, `run-<id>/decisions.jsonl` the daemon's own
+decisions (pause, resume, the end) in the order it took them, before the database hears of them. All
+are written with `os.write` on an `O_APPEND` descriptor, so a write survives the writer's death once it
+returns.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ class RunJournal:
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND
         self._telemetry = os.open(self.directory / "telemetry.bin", flags, 0o600)
         self._events = os.open(self.directory / "events.jsonl", flags, 0o600)
+        self._decisions = os.open(self.directory / "decisions.jsonl", flags, 0o600)
 
     def append_telemetry(self, records: np.ndarray) -> None:
         if len(records):
@@ -44,8 +47,11 @@ class RunJournal:
         if events:
             os.write(self._events, "".join(json.dumps(to_jsonable(e)) + "\n" for e in events).encode())
 
+    def append_decision(self, decision: dict[str, Any]) -> None:
+        os.write(self._decisions, (json.dumps(to_jsonable(decision), default=str) + "\n").encode())
+
     def close(self) -> None:
-        for descriptor in (self._telemetry, self._events):
+        for descriptor in (self._telemetry, self._events, self._decisions):
             with contextlib.suppress(OSError):
                 os.close(descriptor)
 
@@ -69,6 +75,16 @@ def read_journal(journal_dir: Path, run_id: int) -> tuple[np.ndarray | None, lis
             with contextlib.suppress(ValueError):
                 events.append(json.loads(line))
     return records, events
+
+
+def read_decisions(journal_dir: Path, run_id: int) -> list[dict[str, Any]]:
+    """The daemon's journalled decisions of a run, oldest first (a torn last line is dropped)."""
+    decisions = []
+    with contextlib.suppress(OSError):
+        for line in (run_directory(journal_dir, run_id) / "decisions.jsonl").read_text().splitlines():
+            with contextlib.suppress(ValueError):
+                decisions.append(json.loads(line))
+    return decisions
 
 
 def remove_journal(journal_dir: Path, run_id: int) -> None:
