@@ -10,6 +10,7 @@ connection holding the write lock, as a stuck process or a backup would.
 from __future__ import annotations
 
 import contextlib
+import datetime as dt
 import logging
 import socket
 import sqlite3
@@ -26,8 +27,11 @@ from sqlalchemy import Engine, make_url, select
 from server.app import create_app
 from server.auth.safe_commands import TOKEN_ONLY, VERIFIED
 from server.db import Database, create_database_engine, upgrade_database
+from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.daemon import RobotDaemon
+from server.robotd.journal import RunJournal, read_decisions
 from server.robotd.link import LocalLink
+from server.robotd.recovery import recover_open_runs
 from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
 from server.sessions.recorder import decode_chunk
 from server.settings import Settings
@@ -248,6 +252,12 @@ def test_stop_pause_and_the_robot_state_answer_while_the_database_is_down(
             assert (answer["id"], answer["state"], answer["outcome"]) == (run_id, "ended", "stopped"), answer
             assert answer["stopped_by_id"] == seed.therapist_id, answer
             assert worker.command_names()[-2:] == ["pause", "stop"], worker.command_names()
+            journalled = read_decisions(journal_dir, run_id)  # before the database heard of them
+            assert [(d["decision"], d["user_id"]) for d in journalled] == [
+                ("pause", seed.therapist_id),
+                ("end", seed.therapist_id),
+            ], journalled
+            assert journalled[-1]["outcome"] == "stopped", journalled
             produced.append(worker.produce(100))  # the controlled stop's last samples
             worker.emit_event("drives_disabled")
 
@@ -312,3 +322,85 @@ def test_a_read_only_database_503_names_no_file(tmp_path: Path, settings: Settin
             assert "private-name" not in str(health) and health["status"] == "degraded", health
     finally:
         read_only.dispose()
+
+
+def test_a_stop_the_database_never_heard_of_is_recovered_from_the_journal_as_decided(
+    robot_client: TestClient, seed: Seed, fake_worker: FakeWorker, database: Database, tmp_path: Path
+) -> None:
+    """The daemon journalled pause and stop during an outage, then died before the database returned:
+    the next start closes the run as the daemon decided, not as `interrupted`."""
+    headers = seed.headers()
+    booked = booked_session(robot_client, headers)
+    run_id = robot_client.post(f"/api/v1/sessions/{booked.session_id}/start", headers=headers).json()["id"]
+    robot_client.app.state.robot.daemon.run = None  # type: ignore[attr-defined]  # the daemon "dies"
+    journal = RunJournal(tmp_path, run_id, TELEMETRY_DTYPE)
+    paused_at = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=1)
+    stopped_at = paused_at + dt.timedelta(seconds=2)
+    journal.append_decision(
+        {"decision": "pause", "user_id": seed.therapist_id, "credential": TOKEN_ONLY, "utc": paused_at, "tick": 5}
+    )
+    journal.append_decision(
+        {
+            "decision": "end",
+            "outcome": "stopped",
+            "reason": "stopped by the operator",
+            "user_id": seed.therapist_id,
+            "credential": TOKEN_ONLY,
+            "utc": stopped_at,
+            "tick": 9,
+            "tick_time_s": 0.009,
+        }
+    )
+    with (journal.directory / "decisions.jsonl").open("a") as torn:  # the daemon died mid-write
+        torn.write('{"decision": "res')
+    journal.close()
+    assert recover_open_runs(database=database, robot="twin-1", journal_dir=tmp_path) == [run_id]
+    with database.session() as session:
+        run = session.get(SessionRun, run_id)
+        assert run is not None
+        assert (run.state, run.outcome, run.stopped_by_id) == ("ended", "stopped", seed.therapist_id)
+        assert run.ended_at == stopped_at
+        events = session.scalars(select(SessionEvent).where(SessionEvent.run_id == run_id)).all()
+        by_kind = {event.kind: event for event in events}
+    assert sorted(by_kind) == ["pause", "run_ended", "start", "stop"], sorted(by_kind)
+    assert by_kind["pause"].user_id == seed.therapist_id and by_kind["pause"].utc == paused_at
+    assert by_kind["stop"].details == {"credential": TOKEN_ONLY} and by_kind["stop"].tick == 9
+    assert by_kind["run_ended"].details["outcome"] == "stopped"
+    assert not (tmp_path / f"run-{run_id}").exists()
+
+
+@pytest.mark.slow
+def test_a_real_console_stops_during_a_database_outage_and_the_records_catch_up(tmp_path: Path) -> None:
+    """`serve` and its robot daemon as processes (kinematic backend, the real worker), SQLite's write lock
+    held by another process's connection while the operator stops: the stop answers 200, the robot stops,
+    and once the lock is gone the run's end, events and every sample reach the database."""
+    from benchmarks.fault_harness import EVENT_TIMEOUT_S, Console, wait_for
+
+    console = Console(tmp_path / "console")
+    console.start()
+    try:
+        session_id = console.book()
+        started = console.post(f"/sessions/{session_id}/start")
+        assert started.status_code == 200, started.text
+        run_id = started.json()["id"]
+        console.wait_moving()
+        wait_for(lambda: console.run(run_id)["sample_count"] > 0, EVENT_TIMEOUT_S, "samples in the database", 0.1)
+        with sqlite_write_lock(console.data_dir / "ssp-rehab.sqlite3"):
+            stopped = answer_during_outage(lambda: console.post(f"/sessions/{session_id}/stop"))
+            assert stopped.status_code == 200, stopped.text
+            assert (stopped.json()["state"], stopped.json()["outcome"]) == ("ended", "stopped"), stopped.json()
+            wait_for(
+                lambda: console.get("/robot/state").json().get("state") in ("stopped", "idle"),
+                EVENT_TIMEOUT_S,
+                "the robot to stop while the database is locked",
+            )
+        journal = console.data_dir / "runs" / console.robot / f"run-{run_id}"
+        wait_for(lambda: not journal.exists(), EVENT_TIMEOUT_S * 2, "the database to catch up", 0.2)
+        run = console.run_row(run_id)
+        assert (run["state"], run["outcome"]) == ("ended", "stopped"), run
+        count, first_tick, last_tick = console.telemetry_ticks(run_id)
+        assert count == run["sample_count"] == last_tick - first_tick + 1, (count, run["sample_count"], first_tick)
+        kinds = [event["kind"] for event in console.events(run_id)]
+        assert {"start", "stop", "run_ended", "drives_disabled"} <= set(kinds), kinds
+    finally:
+        console.stop()
