@@ -31,10 +31,12 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from core.robot import default_twin, load_twin
 from server.api_docs import install_offline_docs
 from server.auth.dependencies import AuthState
+from server.auth.safe_commands import LoginCache
 from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
+from server.observability.health import DatabaseProbe
 from server.robotd.daemon import RobotDaemon
 from server.robotd.estop_listener import page_stop_url
 from server.robotd.link import DaemonLink, LocalLink
@@ -61,6 +63,8 @@ logger = logging.getLogger(__name__)
 
 API_PREFIX = "/api/v1"
 START_WORKER = object()  # `create_app(worker=...)` default: attach to the robot daemon if settings allow it
+DATABASE_UNAVAILABLE = "the database is unavailable"
+DATABASE_READ_ONLY = "the database is read-only"
 
 
 class RedactQueryStrings(logging.Filter):
@@ -118,15 +122,17 @@ def _error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(OperationalError)
     @app.exception_handler(InternalError)
-    async def database_refused(_request: Request, error: OperationalError | InternalError) -> JSONResponse:
-        # The database itself failed (read-only, full, locked, unreachable): not the request's fault.
+    async def database_refused(request: Request, error: OperationalError | InternalError) -> JSONResponse:
+        # The database itself failed (read-only, full, locked, unreachable): not the request's fault. The
+        # browser learns what happened, never where (host, port, file): that goes to the service's log.
         database: Database | None = app.state.database
         reason = refused_write_reason(error, database.engine if database is not None else None)
         if reason is None and isinstance(error, InternalError):
             raise error
-        detail = reason or f"the database is unavailable: {str(error.orig).splitlines()[0][:200]}"
+        logger.error("%s %s: %s", request.method, request.url.path, reason or str(error.orig).splitlines()[0][:500])
+        detail = DATABASE_READ_ONLY if reason is not None else DATABASE_UNAVAILABLE
         if reason is not None:
-            app.state.database_refusal = reason  # /health says so until a restart finds it writable again
+            app.state.database_refusal = detail  # /health says so until a restart finds it writable again
         return JSONResponse({"detail": f"{detail}: nothing was written"}, status_code=503)
 
     @app.exception_handler(IntegrityError)
@@ -173,23 +179,31 @@ def _api_router() -> APIRouter:
     @api.get("/health", tags=["health"])
     def health(request: Request) -> dict[str, Any]:
         """Public liveness check: the service is up, and its robot daemon's state (starting, ready, fault
-        or absent) with the reason; read from shared memory, so it never waits for the robot."""
+        or absent) with the reason; read from shared memory, so it never waits for the robot. `degraded`,
+        with every reason in `reasons`, when something the console needs does not work."""
         robot: RobotLink | None = request.app.state.robot
         if robot is None:
             daemon = {"state": "absent", "reason": "this console runs without a robot"}
         else:
             daemon = robot.status().to_dict()
-        # A database that turned read-only after start-up is known from the write it refused (probing it
+        reasons: list[str] = []
+        # Reachable: a cached, bounded SELECT 1. Read-only: known from the write it refused (probing writes
         # here would take SQLite's write lock on every health check).
-        refusal: str | None = getattr(request.app.state, "database_refusal", None)
+        unreachable = request.app.state.database_probe.unreachable_reason(request.app.state.database)
+        refusal: str | None = unreachable or getattr(request.app.state, "database_refusal", None)
+        if refusal is not None:
+            reasons.append(refusal)
         # The robot daemon's recorder cannot write (disk full, I/O error): runs stop, starts are refused.
         recording_failure: str | None = daemon.get("recording_failure")
+        if recording_failure is not None:
+            reasons.append(f"the robot cannot record: {recording_failure}")
         return {
-            "status": "ok" if refusal is None and recording_failure is None else "degraded",
+            "status": "degraded" if reasons else "ok",
+            "reasons": reasons,
             "recording": {"ok": recording_failure is None, "reason": recording_failure},
             "robot_connected": daemon["state"] == "ready",
             "robot": daemon,
-            "database": {"writable": refusal is None, "reason": refusal},
+            "database": {"reachable": unreachable is None, "writable": refusal is None, "reason": refusal},
             "web_pid": os.getpid(),  # which of the console's web processes (`serve --workers N`) answered
             "clinic_timezone": request.app.state.settings.timezone,  # the console shows every time in it
             # Where the page sends its emergency stop (the robot's stop listener); /api/v1/estop if it fails.
@@ -296,6 +310,8 @@ def create_app(
         cookie_name=settings.cookie_name,
     )
     app.state.database = database
+    app.state.database_probe = DatabaseProbe()
+    app.state.login_cache = LoginCache()
     app.state.robot = None
     app.state.fanout = None
     app.state.viz = None

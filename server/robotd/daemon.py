@@ -58,6 +58,7 @@ WEB_STALL_TOLERANCE_S = 1.0  # a controlling console silent this long is treated
 RECORDING_PROBE_PERIOD_S = 1.0  # while the recorder cannot write, try a probe write this often
 RECORDING_PROBE_BYTES = TELEMETRY_DTYPE.itemsize * 1000  # a second of telemetry at 1 kHz must fit
 DAEMON_DETECTOR = "robot daemon"
+VERIFIED_LOGIN = "login session"  # the credential of a command whose login the database confirmed
 Listener = Callable[[list[dict[str, Any]]], None]
 
 
@@ -74,6 +75,29 @@ class ActiveRun:
     outcome: RunOutcome | None = None
     tail_deadline: float | None = None
     journal_failed: bool = False  # a write failed: the rest of the run is held in memory for the database
+    # The run as the daemon knows it: what stop and pause answer with, never waiting for the database.
+    version_id: int | None = None
+    started_by_id: int | None = None
+    started_at: dt.datetime = field(default_factory=lambda: dt.datetime.now(dt.UTC))
+    ended_at: dt.datetime | None = None
+    stopped_by_id: int | None = None
+    sample_count: int = 0
+
+    def record(self, robot: str) -> dict[str, Any]:
+        """The run as the daemon knows it, in the shape of `SessionRunOut`."""
+        return {
+            "id": self.run_id,
+            "scheduled_session_id": self.session_id,
+            "prescription_version_id": self.version_id,
+            "robot": robot,
+            "state": self.state.value,
+            "outcome": self.outcome.value if self.outcome is not None else None,
+            "started_at": self.started_at.isoformat(),
+            "ended_at": self.ended_at.isoformat() if self.ended_at is not None else None,
+            "started_by_id": self.started_by_id,
+            "stopped_by_id": self.stopped_by_id,
+            "sample_count": self.sample_count,
+        }
 
 
 @dataclass
@@ -208,7 +232,7 @@ class RobotDaemon:
                 raise WorkerUnavailableError(
                     f"the run could not be recorded ({type(error).__name__}: {error}); the robot was stopped again"
                 ) from error
-            self._confirm(run_id, session_id, controller)
+            self._confirm(run_id, session_id, controller, version_id=version_id, started_by_id=user_id)
             return run_id
         finally:
             self._starting = None
@@ -221,7 +245,9 @@ class RobotDaemon:
         # An emergency stop latched during the check makes the worker refuse this load.
         self.worker.load_plan(plan, report)  # type: ignore[attr-defined]
 
-    def _confirm(self, run_id: int, session_id: int, controller: str | None) -> None:
+    def _confirm(
+        self, run_id: int, session_id: int, controller: str | None, *, version_id: int, started_by_id: int
+    ) -> None:
         """The run is recorded: what arrived since `start_motion` belongs to it."""
         journal, failure = None, None
         if self.journal_dir is not None:
@@ -230,7 +256,7 @@ class RobotDaemon:
             except OSError as error:
                 failure = error if error.filename else OSError(error.errno, error.strerror, str(self.journal_dir))
         with self._lock:
-            run = ActiveRun(run_id, session_id, controller, journal)
+            run = ActiveRun(run_id, session_id, controller, journal, version_id=version_id, started_by_id=started_by_id)
             telemetry, events = self._arming or ([], [])
             self._arming = None
             self.run, self.recent_run_id = run, run_id
@@ -238,7 +264,11 @@ class RobotDaemon:
                 self._recording_failed(run, failure)
             self._take(run, np.concatenate(telemetry) if telemetry else None, events)
 
-    def control(self, session_id: int, command: service.RunCommand, user_id: int) -> int:
+    def control(
+        self, session_id: int, command: service.RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
+    ) -> dict[str, Any]:
+        """Pause, resume or stop the session's run. Decided, journalled and answered here; the database
+        write follows (retried until the database takes it), so that stopping never waits for it."""
         with self._lock:
             run = self.run if self.run is not None and self.run.session_id == session_id else None
             active = run if run is not None and run.outcome is None else None
@@ -248,19 +278,29 @@ class RobotDaemon:
                 getattr(self.worker, command)()
             except Exception as error:
                 raise service.refused(error) from error
-            clock = self.clock()
             if command == "stop":
-                future = self._end(active, RunOutcome.STOPPED, "stopped by the operator", stopped_by_id=user_id)
+                self._end(
+                    active, RunOutcome.STOPPED, "stopped by the operator", stopped_by_id=user_id, credential=credential
+                )
             else:
                 active.state = next_state
-                future = self.writer.submit(
-                    lambda s: service.record_command(
-                        session=s, run_id=active.run_id, command=command, clock=clock, actor_id=user_id
-                    ),
-                    retry=False,
+                clock, at = self.clock(), dt.datetime.now(dt.UTC)
+                self._journal_decision(
+                    active, {"decision": command, "user_id": user_id, "credential": credential, "utc": at}, clock
                 )
-        future.result(60.0)
-        return active.run_id
+                self.writer.submit(
+                    lambda s: service.record_command(
+                        session=s,
+                        run_id=active.run_id,
+                        command=command,
+                        clock=clock,
+                        actor_id=user_id,
+                        at=at,
+                        credential=credential,
+                    ),
+                    retry=True,
+                )
+            return active.record(self.robot)
 
     def reset(self, user_id: int) -> None:
         try:
@@ -506,6 +546,7 @@ class RobotDaemon:
         if telemetry is not None and len(telemetry):
             records = np.array(telemetry, copy=True)
             run.pending.append(records)
+            run.sample_count += len(records)
             self._journal(run, lambda journal: journal.append_telemetry(records))
         if events:
             self._store_events(run.run_id, events)
@@ -575,13 +616,20 @@ class RobotDaemon:
         at: dt.datetime | None = None,
         clock: service.Clock | None = None,
         stopped_by_id: int | None = None,
+        credential: str | None = None,
     ) -> Any:
-        """Decide the end of `run` (the first decision wins) and record it; recording goes on for the tail."""
-        if run.outcome is None:
-            run.outcome, run.state = outcome, RunState.ENDED
-            run.tail_deadline = time.monotonic() + self.tail_s
+        """Decide the end of `run` (the first decision wins), journal it, then record it in the database;
+        recording goes on for the tail."""
         at = at or dt.datetime.now(dt.UTC)
         clock = clock or self.clock()
+        if run.outcome is None:
+            run.outcome, run.state, run.ended_at = outcome, RunState.ENDED, at
+            run.tail_deadline = time.monotonic() + self.tail_s
+            run.stopped_by_id = stopped_by_id
+            decision = {"decision": "end", "outcome": outcome.value, "utc": at, "reason": reason}
+            self._journal_decision(run, {**decision, "user_id": stopped_by_id, "credential": credential}, clock)
+        elif run.stopped_by_id is None:
+            run.stopped_by_id = stopped_by_id
         run_id, decided = run.run_id, run.outcome
         return self.writer.submit(
             lambda s: service.end_run(
@@ -592,9 +640,21 @@ class RobotDaemon:
                 reason=reason,
                 clock=clock,
                 stopped_by_id=stopped_by_id,
+                credential=credential,
             ),
             retry=True,
         )
+
+    @staticmethod
+    def _journal_decision(run: ActiveRun, decision: dict[str, Any], clock: service.Clock) -> None:
+        """Before the database: a daemon that dies before the database took it leaves it to recovery."""
+        if run.journal is None:
+            return
+        tick, tick_time_s = clock
+        try:
+            run.journal.append_decision({**decision, "tick": tick, "tick_time_s": tick_time_s})
+        except OSError:
+            log.exception("run %d: the decision %r could not be journalled", run.run_id, decision.get("decision"))
 
     def _release(self, run: ActiveRun) -> None:
         """The run's recording is complete: its last chunk goes to the database, then its journal away,

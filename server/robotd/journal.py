@@ -3,10 +3,11 @@ recorder at least every 100 ms, before the database sees them. A web crash then 
 daemon crash at most the last write interval; the next daemon start replays what the database lacks.
 
 `run-<id>/telemetry.bin` holds raw `TELEMETRY_DTYPE` records back to back (`dtype.json` names the
-layout), `run-<id>/events.jsonl` one event per line. Both are written with `os.write` on an
-`O_APPEND` descriptor, so a write survives the writer's death once it returns. A write that fails
-(disk full, I/O error) is cut back off the file, so the journal stays a clean prefix of the run, and
-raises `OSError` naming the file.
+layout), `run-<id>/events.jsonl` one event per line, `run-<id>/decisions.jsonl` the daemon's own
+decisions (pause, resume, the end) in the order it took them, before the database hears of them. All
+are written with `os.write` on an `O_APPEND` descriptor, so a write survives the writer's death once it
+returns. A write that fails (disk full, I/O error) is cut back off the file, so the journal stays a
+clean prefix of the run, and raises `OSError` naming the file.
 """
 
 from __future__ import annotations
@@ -37,8 +38,10 @@ class RunJournal:
         (self.directory / "dtype.json").write_text(json.dumps(np.lib.format.dtype_to_descr(dtype)))
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND
         self.telemetry_path, self.events_path = self.directory / "telemetry.bin", self.directory / "events.jsonl"
+        self.decisions_path = self.directory / "decisions.jsonl"
         self._telemetry = os.open(self.telemetry_path, flags, 0o600)
         self._events = os.open(self.events_path, flags, 0o600)
+        self._decisions = os.open(self.decisions_path, flags, 0o600)
 
     def append_telemetry(self, records: np.ndarray) -> None:
         if len(records):
@@ -49,8 +52,11 @@ class RunJournal:
             text = "".join(json.dumps(to_jsonable(e)) + "\n" for e in events)
             _append(self._events, self.events_path, text.encode())
 
+    def append_decision(self, decision: dict[str, Any]) -> None:
+        _append(self._decisions, self.decisions_path, (json.dumps(to_jsonable(decision), default=str) + "\n").encode())
+
     def close(self) -> None:
-        for descriptor in (self._telemetry, self._events):
+        for descriptor in (self._telemetry, self._events, self._decisions):
             with contextlib.suppress(OSError):
                 os.close(descriptor)
 
@@ -102,6 +108,16 @@ def read_journal(journal_dir: Path, run_id: int) -> tuple[np.ndarray | None, lis
             with contextlib.suppress(ValueError):
                 events.append(json.loads(line))
     return records, events
+
+
+def read_decisions(journal_dir: Path, run_id: int) -> list[dict[str, Any]]:
+    """The daemon's journalled decisions of a run, oldest first (a torn last line is dropped)."""
+    decisions = []
+    with contextlib.suppress(OSError):
+        for line in (run_directory(journal_dir, run_id) / "decisions.jsonl").read_text().splitlines():
+            with contextlib.suppress(ValueError):
+                decisions.append(json.loads(line))
+    return decisions
 
 
 def remove_journal(journal_dir: Path, run_id: int) -> None:

@@ -25,7 +25,7 @@ from typing import Any
 from server.realtime.shm import ControlBlock, Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
 from server.robotd import estop
-from server.robotd.daemon import RobotDaemon, refusal_from_dict
+from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon, refusal_from_dict
 from server.robotd.estop import ESTOP_CONFIRM_TIMEOUT_S, StopAnswer
 from server.robotd.status import (
     COMMAND_STALE_S,
@@ -162,8 +162,14 @@ class DaemonLink:
     def start_session(self, session_id: int, user_id: int) -> int:
         return int(self._request("start", session_id=session_id, user_id=user_id, link_id=self.link_id))
 
-    def control(self, session_id: int, command: RunCommand, user_id: int) -> int:
-        return int(self._request("control", session_id=session_id, command=command, user_id=user_id))
+    def control(
+        self, session_id: int, command: RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
+    ) -> dict[str, Any]:
+        """The run as the daemon knows it once it decided (it never waits for the database)."""
+        run: dict[str, Any] = self._request(
+            "control", session_id=session_id, command=command, user_id=user_id, credential=credential
+        )
+        return run
 
     def reset(self, user_id: int) -> None:
         self._request("reset", user_id=user_id)
@@ -344,8 +350,10 @@ class LocalLink:
     def start_session(self, session_id: int, user_id: int) -> int:
         return self.daemon.start_session(session_id, user_id)
 
-    def control(self, session_id: int, command: RunCommand, user_id: int) -> int:
-        return self.daemon.control(session_id, command, user_id)
+    def control(
+        self, session_id: int, command: RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
+    ) -> dict[str, Any]:
+        return self.daemon.control(session_id, command, user_id, credential)
 
     def reset(self, user_id: int) -> None:
         self.daemon.reset(user_id)

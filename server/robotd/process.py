@@ -41,7 +41,7 @@ from typing import Any
 
 from server.db import Database, create_database_engine, upgrade_database
 from server.realtime.client import WorkerClient
-from server.robotd.daemon import RobotDaemon, refusal_to_dict
+from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon, refusal_to_dict
 from server.robotd.planner import Planner
 from server.robotd.recovery import recover_open_runs
 from server.robotd.status import (
@@ -257,7 +257,8 @@ class RobotDaemonProcess:
         if command == "start":
             return daemon.start_session(int(request["session_id"]), int(request["user_id"]), request.get("link_id"))
         if command == "control":
-            return daemon.control(int(request["session_id"]), request["command"], int(request["user_id"]))
+            credential = str(request.get("credential") or VERIFIED_LOGIN)
+            return daemon.control(int(request["session_id"]), request["command"], int(request["user_id"]), credential)
         if command == "reset":
             daemon.reset(int(request["user_id"]))
             return None

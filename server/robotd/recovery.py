@@ -1,7 +1,9 @@
 """Closing runs a crash left open: on any start (the daemon's, or a web process's while no daemon runs),
 every open run of the robot gets what its journal holds and the database lacks (telemetry after the
-last stored chunk, events not yet stored) and a `daemon_lost` event saying what is known of the stop,
-then ends as `interrupted` at the true time: the last moment anything of it was recorded."""
+last stored chunk, events and the daemon's pause/resume decisions not yet stored) and a `daemon_lost`
+event saying what is known of the stop, then ends: as the daemon had decided when its journal holds the
+end (a stop during a database outage, say), else as `interrupted`, at the true time: the last moment
+anything of it was recorded."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from sqlalchemy import func, select
 
 from server.db import Database, write_transaction
 from server.jsonable import to_jsonable
-from server.robotd.journal import read_journal, remove_journal
+from server.robotd.journal import read_decisions, read_journal, remove_journal
 from server.sessions import service
 from server.sessions.models import ACTIVE_STATES, RunOutcome, SessionEvent, SessionRun, TelemetryChunk
 from server.sessions.recorder import decode_chunk, encode_chunk, event_utc
@@ -44,6 +46,20 @@ def recover_open_runs(
 
 def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid: int | None) -> None:
     records, events = read_journal(journal_dir, run_id)
+    decisions = read_decisions(journal_dir, run_id)
+    end = next((d for d in decisions if d.get("decision") == "end"), None)
+    # The daemon's pause and resume, as the events `record_command` would have written.
+    for decision in decisions:
+        if decision.get("decision") in ("pause", "resume"):
+            credential = decision.get("credential")
+            events.append(
+                {
+                    **{key: decision.get(key) for key in ("tick", "tick_time_s", "utc", "user_id")},
+                    "kind": decision["decision"],
+                    "detector": "console",
+                    "details": {"credential": credential} if credential else {},
+                }
+            )
     with database.session() as session, write_transaction(session):
         run = session.get(SessionRun, run_id)
         assert run is not None
@@ -94,6 +110,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid
                     utc=utc,
                     detector=str(event["detector"])[:64] if event.get("detector") else None,
                     details=to_jsonable(event.get("details") or {}),
+                    user_id=event.get("user_id"),
                 )
             )
         if _event_key("daemon_lost", last_moment) not in stored:
@@ -114,12 +131,25 @@ def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid
                 )
             )
     with database.session() as session:
-        service.end_run(
-            session=session,
-            run_id=run_id,
-            outcome=RunOutcome.INTERRUPTED,
-            at=last_moment,
-            reason="left open by a crash; closed on the next start at the time of its last record",
-        )
+        if end is not None:  # decided and journalled by the daemon before the database heard of it
+            service.end_run(
+                session=session,
+                run_id=run_id,
+                outcome=RunOutcome(end["outcome"]),
+                at=event_utc(end.get("utc")),
+                reason=str(end.get("reason")),
+                clock=(end.get("tick"), end.get("tick_time_s")),
+                stopped_by_id=end.get("user_id"),
+                credential=end.get("credential"),
+            )
+        else:
+            service.end_run(
+                session=session,
+                run_id=run_id,
+                outcome=RunOutcome.INTERRUPTED,
+                at=last_moment,
+                reason="left open by a crash; closed on the next start at the time of its last record",
+            )
     remove_journal(journal_dir, run_id)
-    log.warning("run %d was left open by a crash: closed as interrupted at %s", run_id, last_moment.isoformat())
+    outcome = end["outcome"] if end is not None else "interrupted"
+    log.warning("run %d was left open by a crash: closed as %s at %s", run_id, outcome, last_moment.isoformat())

@@ -40,6 +40,7 @@ from server.auth.dependencies import (
     unauthorized,
     user_for_claims,
 )
+from server.auth.safe_commands import SafeCommandUser
 from server.auth.security import TokenClaims
 from server.db import Database, SessionDep, writes
 from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
@@ -201,11 +202,20 @@ def start_session(session_id: IdPath, request: Request, user_id: ActingUserId, r
 
 
 def _control(command: service.RunCommand) -> Any:
-    def control(session_id: IdPath, request: Request, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
-        return _run_out(request, robot.control(session_id, command, user_id))
+    if command == "resume":  # motion again: a login the database confirms, as for a start
+
+        def control(session_id: IdPath, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
+            return SessionRunOut.model_validate(robot.control(session_id, command, user_id))
+
+    else:  # stop and pause only make the robot safer: they never wait for the database
+
+        def control(session_id: IdPath, login: SafeCommandUser, robot: RobotDep) -> SessionRunOut:  # type: ignore[misc]
+            return SessionRunOut.model_validate(robot.control(session_id, command, login.user_id, login.credential))
 
     control.__name__ = f"{command}_session"
-    control.__doc__ = f"{command.capitalize()} the active run of this session."
+    control.__doc__ = (
+        f"{command.capitalize()} the active run of this session. The answer is the robot daemon's record of the run."
+    )
     return control
 
 
@@ -219,10 +229,12 @@ for _command in ("pause", "resume", "stop"):
     )
 
 
-@router.get("/robot/state", responses={503: {"description": "No robot, or its daemon is starting, faulted or gone"}})
-def robot_state(robot: LiveRobotDep) -> dict[str, Any]:
+@motion_router.get(
+    "/robot/state", responses={503: {"description": "No robot, or its daemon is starting, faulted or gone"}}
+)
+def robot_state(_login: SafeCommandUser, robot: LiveRobotDep) -> dict[str, Any]:
     """The worker's latest state: supervisor state, stance pose, slider positions, drive forces, tick stats,
-    and the robot daemon's own status."""
+    and the robot daemon's own status. Read from the robot, never from the database."""
     state: dict[str, Any] = to_jsonable(robot.latest_state())
     state["robot"] = robot.status().to_dict()
     return state

@@ -173,23 +173,36 @@ def check_command(run_state: RunState | None, session_id: int, command: RunComma
 
 
 @writes
-def record_command(*, session: Session, run_id: int, command: RunCommand, clock: Clock, actor_id: int) -> SessionRun:
-    """A pause or resume (a stop is recorded by `end_run`)."""
+def record_command(
+    *,
+    session: Session,
+    run_id: int,
+    command: RunCommand,
+    clock: Clock,
+    actor_id: int,
+    at: dt.datetime | None = None,
+    credential: str | None = None,
+) -> SessionRun:
+    """A pause or resume (a stop is recorded by `end_run`), at the time the daemon decided it. A run that
+    ended meanwhile (the database caught up late) keeps its end; the command is still recorded."""
     run = get_run(session=session, run_id=run_id)
-    run.state = TRANSITIONS[command][1].value
-    add_event(session=session, run_id=run.id, kind=command, user_id=actor_id, clock=clock)
-    _audit_motion(session, actor_id, run.id, command)
+    if run.state != RunState.ENDED:
+        run.state = TRANSITIONS[command][1].value
+    details = {"credential": credential} if credential else None
+    add_event(session=session, run_id=run.id, kind=command, user_id=actor_id, clock=clock, details=details, utc=at)
+    _audit_motion(session, actor_id, run.id, command, credential)
     return run
 
 
-def _audit_motion(session: Session, actor_id: int | None, run_id: int, command: str) -> None:
+def _audit_motion(session: Session, actor_id: int | None, run_id: int, command: str, credential: str | None) -> None:
+    details = {"command": command, **({"credential": credential} if credential else {})}
     audit.record(
         session=session,
         user_id=actor_id,
         action="motion",
         resource_type="session_run",
         resource_id=run_id,
-        details={"command": command},
+        details=details,
     )
 
 
@@ -203,6 +216,7 @@ def end_run(
     reason: str,
     clock: Clock = NO_CLOCK,
     stopped_by_id: int | None = None,
+    credential: str | None = None,
 ) -> SessionRun | None:
     """The one way a run ends: its state, outcome, true end time, who stopped it, a `run_ended` event, and
     the booking completed when the prescription was. A run that already ended is left as it is (the first
@@ -217,8 +231,11 @@ def end_run(
     run.state, run.outcome, run.ended_at = RunState.ENDED.value, outcome.value, at
     run.stopped_by_id = stopped_by_id
     if outcome == RunOutcome.STOPPED:
-        add_event(session=session, run_id=run.id, kind="stop", user_id=stopped_by_id, clock=clock, utc=at)
-        _audit_motion(session, stopped_by_id, run.id, "stop")
+        details = {"credential": credential} if credential else None
+        add_event(
+            session=session, run_id=run.id, kind="stop", user_id=stopped_by_id, clock=clock, utc=at, details=details
+        )
+        _audit_motion(session, stopped_by_id, run.id, "stop", credential)
     add_event(
         session=session,
         run_id=run.id,

@@ -38,9 +38,10 @@ def test_health_is_public_and_reports_no_robot(client: TestClient) -> None:
     assert response.json() == {
         "status": "ok",
         "recording": {"ok": True, "reason": None},
+        "reasons": [],
         "robot_connected": False,
         "robot": {"state": "absent", "reason": "this console runs without a robot"},
-        "database": {"writable": True, "reason": None},
+        "database": {"reachable": True, "writable": True, "reason": None},
         "web_pid": os.getpid(),  # the process that answered (here the test's own, in-process app)
         "clinic_timezone": client.app.state.settings.timezone,  # type: ignore[attr-defined]
         "estop": {"url": None, "fallback": "/api/v1/estop"},  # no robot, no stop listener: the web route

@@ -564,7 +564,7 @@ def test_a_login_on_a_read_only_database_is_a_clear_503(tmp_path: Path, settings
 def assert_login_is_refused_as_read_only(settings: Settings, read_only: Engine) -> None:
     """The login answers 503 naming the cause, and from then on the health check reports it."""
     with TestClient(create_app(settings, database=Database(read_only), worker=None)) as client:
-        assert client.get("/api/v1/health").json()["database"] == {"writable": True, "reason": None}
+        assert client.get("/api/v1/health").json()["database"] == {"reachable": True, "writable": True, "reason": None}
         response = login(client, "admin", ADMIN_PASSWORD)
         assert response.status_code == 503, response.text
         assert "is read-only: nothing was written" in response.json()["detail"]
