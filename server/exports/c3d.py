@@ -10,6 +10,8 @@
 - Analogs run at the telemetry rate; points (plate centres and COP in the lab frame, m) at that rate
   divided by an integer ratio, 100 Hz for 1 kHz telemetry, lowered for long sessions because ezc3d
   reads at most 65535 frames. A last partial frame is padded with NaN analog samples.
+- Frames are the recorded samples at the nominal rate: a late, skipped or lost tick does not refuse the
+  export; the `late` and `tick_gap` analog channels flag it per sample (docs/exports.md).
 - Lab frame: the twin's world frame (core/robot.py), metres. Event times are seconds from the first sample.
 """
 
@@ -89,15 +91,6 @@ def _require_finite_stance(stance_pose: np.ndarray) -> None:
     bad = np.flatnonzero(~np.all(np.isfinite(stance_pose), axis=1))
     if bad.size:
         raise SessionLogError(f"stance_pose[{bad[0]}]", stance_pose[bad[0]].tolist(), "finite numbers for C3D")
-
-
-def _require_consecutive_ticks(tick: np.ndarray) -> None:
-    gaps = np.flatnonzero(np.diff(tick) != 1)
-    if gaps.size:
-        index = int(gaps[0]) + 1
-        raise SessionLogError(
-            f"tick[{index}]", int(tick[index]), f"C3D needs uniform sampling: must be {int(tick[index - 1]) + 1}"
-        )
 
 
 def _analog_channels(log: SessionLog) -> list[tuple[str, str, str, np.ndarray]]:
@@ -227,7 +220,6 @@ def export_c3d(log: SessionLog) -> bytes:
     """The session as a C3D file (see the module docstring for the conventions)."""
     twin = _twin(log)
     plate_size_m = _plate_size_m(log)
-    _require_consecutive_ticks(log.columns["tick"])
     _require_finite_stance(log.columns["stance_pose"])
     sample_rate_hz = log.sample_rate_hz
     ratio = c3d_frame_ratio(sample_rate_hz, log.sample_count)

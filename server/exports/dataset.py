@@ -39,6 +39,8 @@ FIELD_DESCRIPTIONS = {
     "session_time": "time into the session on the session clock (events' session_time_s use the same clock)",
     "session_time_s": "time into the session on the session clock (events' session_time_s use the same clock)",
     "skipped_ticks": "control periods the loop skipped just before this sample: 0 on time, > 0 a gap",
+    "tick_gap": "control periods missing just before this sample (skipped deadlines + lost samples): 0 on time",
+    "late": "1 where the tick started more than 500 us after its deadline (the worker's threshold)",
     "tick": "control tick counter of the worker (skipped periods are not counted)",
     "utc_s": "wall clock, POSIX seconds",
     "plate_force_z_n": "vertical load on each foot plate (right, left)",

@@ -362,12 +362,15 @@ def test_c3d_events_have_labels_contexts_and_times(c3d_file):
     assert subject.startswith("P-") and event["SUBJECTS"]["value"] == [subject, subject]
 
 
-def test_c3d_refuses_a_log_with_missing_ticks(twin, columns):
+def test_c3d_flags_a_missing_tick_instead_of_refusing_the_log(twin, columns, tmp_path: Path):
+    """Issue 20 defect 11: a lost sample made the C3D export refuse the whole run."""
     gappy = {name: np.delete(values, 100, axis=0) for name, values in columns.items()}
     gappy_log = SessionLog(columns=gappy, events=[], metadata=metadata_for(twin))
-    with pytest.raises(SessionLogError) as refused:
-        export_session(gappy_log, "c3d")
-    assert refused.value.field == "tick[100]"
+    path = tmp_path / "gappy.c3d"
+    path.write_bytes(export_session(gappy_log, "c3d")[0])
+    c3d = ezc3d.c3d(str(path))
+    gap = c3d["data"]["analogs"][0, c3d["parameters"]["ANALOG"]["LABELS"]["value"].index("tick_gap")]
+    assert np.flatnonzero(gap[: len(gappy["tick"])]).tolist() == [100]
 
 
 def test_c3d_refuses_an_unknown_stance_pose(twin, columns):
@@ -469,8 +472,10 @@ def test_clock_and_sample_rate_are_checked(twin, columns):
         SessionLog(columns=dict(columns, time_s=backwards), metadata=metadata_for(twin))
     assert clock.value.field == "time_s[7]"
     with pytest.raises(SessionLogError) as rate:
-        SessionLog(columns=columns, metadata=dict(metadata_for(twin), sample_rate_hz=500.0))
+        SessionLog(columns=columns, metadata=dict(metadata_for(twin), sample_rate_hz=0.0))
     assert rate.value.field == "metadata.sample_rate_hz"
+    # The nominal rate is kept whatever the stamps say (issue 20 defect 11): late ticks are flags, not errors.
+    assert SessionLog(columns=columns, metadata=dict(metadata_for(twin), sample_rate_hz=500.0)).sample_rate_hz == 500.0
     with pytest.raises(SessionLogError) as session:
         SessionLog(columns=columns, metadata={"sample_rate_hz": SAMPLE_RATE_HZ})
     assert session.value.field == "metadata.session_id"
