@@ -14,7 +14,7 @@ import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -174,6 +174,26 @@ class SessionLog:
         return len(self.columns["time_s"])
 
     @property
+    def head(self) -> SessionLog:
+        """A log with every column, to read the layout from (`RecordedLog`): itself."""
+        return self
+
+    @property
+    def first_tick(self) -> int:
+        return int(self.columns["tick"][0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.columns["time_s"][-1] - self.columns["time_s"][0])
+
+    def batches(self) -> Iterator[SessionLog]:
+        """The telemetry in batches (`RecordedLog`): one, itself."""
+        yield self
+
+    def whole(self) -> SessionLog:
+        return self
+
+    @property
     def sample_rate_hz(self) -> float:
         return float(self.metadata["sample_rate_hz"])
 
@@ -209,6 +229,29 @@ class SessionLog:
             flat = values.reshape(len(values), -1)
             for index, (name, unit) in enumerate(channel_names(field_name, values.shape[1:])):
                 yield Channel(name, unit, field_name, np.ascontiguousarray(flat[:, index]))
+
+
+class RecordedLog(Protocol):
+    """What the exporters write from: a `SessionLog` in memory, or a run read in batches
+    (`server.exports.stream.LogStream`) so that no export holds a whole run."""
+
+    metadata: dict[str, Any]
+    events: list[dict[str, Any]]
+
+    @property
+    def head(self) -> SessionLog: ...
+    @property
+    def session_id(self) -> str: ...
+    @property
+    def sample_rate_hz(self) -> float: ...
+    @property
+    def sample_count(self) -> int: ...
+    @property
+    def first_tick(self) -> int: ...
+    @property
+    def duration_s(self) -> float: ...
+    def batches(self) -> Iterator[SessionLog]: ...
+    def whole(self) -> SessionLog: ...
 
 
 def validate_columns(columns: Mapping[str, np.ndarray]) -> None:
