@@ -154,8 +154,8 @@ def write_json(log: RecordedLog, sink: BinaryIO) -> None:
     sink.write(b'{"metadata":' + to_json(sidecar(log)).encode() + b',"events":' + to_json(log.events).encode())
     for index, name in enumerate(log.head.field_order()):
         sink.write((b',"columns":{' if index == 0 else b",") + json.dumps(name).encode() + b":[")
-        for number, batch in enumerate(log.batches()):
-            values = json.dumps(_json_column(batch.columns[name]), allow_nan=False, separators=(",", ":"))
+        for number, column in enumerate(log.column_batches(name)):
+            values = json.dumps(_json_column(column), allow_nan=False, separators=(",", ":"))
             sink.write((b"," if number else b"") + values[1:-1].encode())
         sink.write(b"]")
     sink.write(b"}}")

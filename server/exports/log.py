@@ -190,6 +190,10 @@ class SessionLog:
         """The telemetry in batches (`RecordedLog`): one, itself."""
         yield self
 
+    def column_batches(self, name: str) -> Iterator[np.ndarray]:
+        """One field's values in batches (`RecordedLog`): one, the column."""
+        yield self.columns[name]
+
     def whole(self) -> SessionLog:
         return self
 
@@ -251,6 +255,7 @@ class RecordedLog(Protocol):
     @property
     def duration_s(self) -> float: ...
     def batches(self) -> Iterator[SessionLog]: ...
+    def column_batches(self, name: str) -> Iterator[np.ndarray]: ...
     def whole(self) -> SessionLog: ...
 
 

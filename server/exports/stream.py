@@ -18,7 +18,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from server.exports.log import SessionLog, SessionLogError
+from server.exports.log import TIMING_FLAGS, SessionLog, SessionLogError, timing_flags
 
 BATCH_SAMPLES = 20_000  # ~12 MB of telemetry records at 1 kHz: 20 s of a run
 
@@ -125,6 +125,22 @@ class LogStream:
             yield SessionLog(columns=columns, metadata=self.metadata, previous_tick=previous)
             if self.on_batch is not None:
                 self.on_batch(len(chunk))
+
+    def column_batches(self, name: str) -> Iterator[np.ndarray]:
+        """One field's values, batch by batch, read from the mapped records without the other fields."""
+        derived = name in TIMING_FLAGS and name not in (self.records.dtype.names or ())
+        sources = [n for n in ("tick", "skipped_ticks", "lateness_us") if n in (self.records.dtype.names or ())]
+        for start in range(0, len(self.records), self.batch_samples):
+            stop = start + self.batch_samples
+            if derived:
+                previous = int(self.records["tick"][start - 1]) if start else None
+                columns = {source: np.array(self.records[source][start:stop]) for source in sources}
+                values = timing_flags(columns, previous)[name]
+            else:
+                values = np.array(self.records[name][start:stop])
+            yield values
+            if self.on_batch is not None:
+                self.on_batch(len(values))
 
     def whole(self) -> SessionLog:
         log = SessionLog.from_telemetry(np.array(self.records), self.events, self.metadata)

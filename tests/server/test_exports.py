@@ -592,3 +592,41 @@ def test_worker_telemetry_records_export_with_named_channels_and_code_tables(twi
     with pytest.raises(SessionLogError) as refused:
         SessionLog.from_telemetry(records["harness_load_n"], [], metadata_for(twin))
     assert refused.value.field == "telemetry"
+
+
+def test_streamed_exports_hold_one_batch_not_the_run(twin, tmp_path: Path):
+    """Issue 20 Build 7: an export's memory must not grow with the run. The same export of a run four times
+    longer, read in batches from its spool, peaks at about the same Python allocations (tracemalloc; the hard
+    figures, RSS included, are in `ssp-rehab bench exports`)."""
+    import tracemalloc
+
+    from server.exports.formats import write_csv, write_json, write_parquet
+    from server.exports.stream import ForwardSink, LogStream, RecordSpool
+    from server.realtime.telemetry import TELEMETRY_DTYPE
+
+    class Discard(io.RawIOBase):
+        def writable(self) -> bool:
+            return True
+
+        def write(self, data) -> int:
+            return len(memoryview(data))
+
+    def peak_bytes(sample_count: int) -> int:
+        spool = RecordSpool(tmp_path / f"{sample_count}.records")
+        for start in range(0, sample_count, 500):
+            records = np.zeros(500, dtype=TELEMETRY_DTYPE)
+            records["tick"] = np.arange(start, start + 500)
+            records["time_s"] = records["tick"] / SAMPLE_RATE_HZ
+            spool.append(records)
+        log = LogStream(spool.mapped(), synthetic_events(), metadata_for(twin), batch_samples=500)
+        tracemalloc.start()
+        try:
+            for writer in (write_csv, write_parquet, write_json):
+                writer(log, ForwardSink(Discard()))
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+            spool.remove()
+
+    short, long = peak_bytes(2_000), peak_bytes(8_000)
+    assert long < 1.5 * short, (short, long)

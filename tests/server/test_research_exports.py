@@ -19,6 +19,7 @@ from core.robot import TwinRobot, default_twin
 from server.exports import SessionLog, pseudonymise, session_metadata
 from server.exports.dataset import DATA_DICTIONARY_FILE, write_parquet_dataset
 from server.realtime.telemetry import TELEMETRY_DTYPE
+from tests.server.conftest import wait_until
 from tests.server.test_exports import PATIENT as EXPORT_PATIENT
 from tests.server.test_exports import SALT
 
@@ -248,7 +249,7 @@ def test_a_run_with_late_and_skipped_ticks_exports_in_every_format_with_the_tick
     import ezc3d
     import pyarrow.parquet as pq
 
-    from tests.server.conftest import booked_session, wait_until
+    from tests.server.conftest import booked_session
     from tests.server.test_api_sessions import start
 
     booked = booked_session(robot_client, seed.headers())
@@ -281,3 +282,33 @@ def test_a_run_with_late_and_skipped_ticks_exports_in_every_format_with_the_tick
     labels = c3d["parameters"]["ANALOG"]["LABELS"]["value"]
     assert c3d["data"]["analogs"][0, labels.index("tick_gap"), 150] == 1.0
     assert c3d["data"]["analogs"][0, labels.index("late"), 42] == 1.0
+
+
+def test_the_bulk_export_streams_from_an_export_process_while_health_answers(robot_client, seed, fake_worker) -> None:
+    """Issue 20 defect 10: `GET /exports/bulk` built everything before its first byte (over 60 s) inside the
+    web process, whose /health then took up to 5.8 s. Now its first bytes arrive while the export process
+    is still building the zip, and /health answers meanwhile."""
+    from tests.server.test_api_sessions import recorded_run
+
+    _, run = recorded_run(robot_client, seed, fake_worker)
+    fake_worker.produce(60_000)  # a minute at 1 kHz: the bulk default (every format) takes seconds to build
+    run_url = f"/api/v1/runs/{run['id']}"
+    wait_until(lambda: robot_client.get(run_url, headers=seed.headers()).json()["sample_count"] == 60_300, 60.0)
+    today = str(dt.datetime.now(dt.UTC).date())
+    bulk = robot_client.stream(
+        "GET", "/api/v1/exports/bulk", params={"from_date": today, "to_date": today}, headers=seed.headers()
+    )
+    with bulk as response:
+        assert response.status_code == 200
+        first = next(response.iter_bytes())
+        assert first[:4] == b"PK\x03\x04"  # a zip's first local header
+        job_url = f"/api/v1/exports/jobs/{response.headers['x-export-job']}"
+        assert robot_client.get(job_url, headers=seed.headers()).json()["state"] == "running"
+        for _ in range(5):
+            started = time.monotonic()
+            assert robot_client.get("/api/v1/health").status_code == 200
+            assert time.monotonic() - started < 2.0  # generous: the web process does no export work
+        progress = robot_client.get(job_url, headers=seed.headers()).json()
+        assert progress["state"] == "running" and 0.0 <= progress["fraction"] < 1.0 and progress["bytes"] > 0
+    other = robot_client.get(job_url, headers=seed.headers("admin"))
+    assert other.status_code == 404  # a job is its owner's only
