@@ -14,7 +14,7 @@ import io
 import zipfile
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
 from server.exports.formats import (
     EXPORT_FORMATS,
@@ -86,7 +86,7 @@ def write_session_folder(archive: zipfile.ZipFile, folder: str, log: RecordedLog
         if fmt != "csv":
             writer, _, suffix = check_format(fmt)
             with archive.open(f"{folder}/session{suffix}", "w", force_zip64=True) as member:
-                writer(log, member)
+                writer(log, cast(BinaryIO, member))
 
 
 def write_bundle(

@@ -23,7 +23,7 @@ import zipfile
 from collections.abc import Callable, Iterable, Sequence
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -229,7 +229,7 @@ def write_dataset_zip(logs: Iterable[RecordedLog], sink: BinaryIO, *, selection:
     with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED) as archive:
 
         def open_member(relative: str) -> BinaryIO:
-            return archive.open(relative, "w", force_zip64=True)
+            return cast(BinaryIO, archive.open(relative, "w", force_zip64=True))
 
         write_dataset(logs, open_member, selection=selection)
 

@@ -48,9 +48,10 @@ Feed = Callable[[Callable[[bytes, bytes], None]], None]
 
 
 # Export processes fork from a forkserver that has imported the exporters once: a fresh interpreter took 4 s
-# (20 s at load 20) to import them; forking the web process itself would copy its threads' locks.
+# (20 s at load 20) to import them; forking the web process itself would copy its threads' locks. "__main__"
+# is preloaded too, so that a console script's children skip multiprocessing's re-import of it.
 _PROCESSES = multiprocessing.get_context("forkserver")
-_PROCESSES.set_forkserver_preload([worker.__name__])
+_PROCESSES.set_forkserver_preload(["__main__", worker.__name__])
 
 
 def start_export_process() -> tuple[multiprocessing.process.BaseProcess, Connection]:
@@ -97,7 +98,7 @@ class ExportJob:
     def status(self) -> dict[str, Any]:
         """state (queued | running | done | failed), fraction 0–1, bytes written, and why it failed."""
         progress = self.progress()
-        base = {"id": self.id, "description": self.description, "filename": self.filename}
+        base: dict[str, Any] = {"id": self.id, "description": self.description, "filename": self.filename}
         base.update(media_type=self.media_type, total_samples=self.total_samples, created_utc=self.created_utc)
         written = self.output.stat().st_size if self.output.exists() else 0
         if self.process is None:

@@ -134,7 +134,7 @@ class LogStream:
             stop = start + self.batch_samples
             if derived:
                 previous = int(self.records["tick"][start - 1]) if start else None
-                columns = {source: np.array(self.records[source][start:stop]) for source in sources}
+                columns: dict[str, np.ndarray] = {s: np.array(self.records[s][start:stop]) for s in sources}
                 values = timing_flags(columns, previous)[name]
             else:
                 values = np.array(self.records[name][start:stop])

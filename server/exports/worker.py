@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, cast
 
 import numpy as np
 
@@ -139,8 +139,9 @@ def run_logs(job: dict[str, Any], runs: queue.Queue[Any], progress: Progress) ->
             spool.remove()
 
 
-def export(job: dict[str, Any], runs: queue.Queue[Any], progress: Progress, sink: ForwardSink) -> None:
+def export(job: dict[str, Any], runs: queue.Queue[Any], progress: Progress, forward: ForwardSink) -> None:
     logs = run_logs(job, runs, progress)
+    sink = cast(BinaryIO, forward)  # a write-only file: what zipfile, pyarrow and the writers use of one
     if job["kind"] == "session":
         writer, _, _ = check_format(job["format"])
         for log in logs:  # one run
