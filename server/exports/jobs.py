@@ -19,10 +19,12 @@ import multiprocessing
 import multiprocessing.process
 import os
 import shutil
+import sys
 import threading
 import time
+import types
 import uuid
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -48,10 +50,9 @@ Feed = Callable[[Callable[[bytes, bytes], None]], None]
 
 
 # Export processes fork from a forkserver that has imported the exporters once: a fresh interpreter took 4 s
-# (20 s at load 20) to import them; forking the web process itself would copy its threads' locks. "__main__"
-# is preloaded too, so that a console script's children skip multiprocessing's re-import of it.
+# (20 s at load 20) to import them; forking the web process itself would copy its threads' locks.
 _PROCESSES = multiprocessing.get_context("forkserver")
-_PROCESSES.set_forkserver_preload(["__main__", worker.__name__])
+_PROCESSES.set_forkserver_preload([worker.__name__])
 
 
 def start_export_process() -> tuple[multiprocessing.process.BaseProcess, Connection]:
@@ -61,9 +62,26 @@ def start_export_process() -> tuple[multiprocessing.process.BaseProcess, Connect
     process = _PROCESSES.Process(
         target=worker.run_export_process, args=(receiver,), name=EXPORT_PROCESS_NAME, daemon=True
     )
-    process.start()
+    with _START_LOCK, _without_main_module():
+        process.start()
     receiver.close()
     return process, sender
+
+
+_START_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _without_main_module() -> Iterator[None]:
+    """multiprocessing makes each child import the parent's `__main__` (under `python -m server.cli.main`,
+    the whole console: ~2.5 s of CPU per export at load 20); the export process needs none of it. The main
+    module is hidden while the child's start-up data is taken, in this thread, then put back."""
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
 
 
 @dataclass
