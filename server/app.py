@@ -36,6 +36,7 @@ from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
+from server.exports.jobs import ExportJobs
 from server.observability.health import DatabaseProbe
 from server.robotd.daemon import RobotDaemon
 from server.robotd.estop_listener import page_stop_url
@@ -168,7 +169,7 @@ def _api_router() -> APIRouter:
     from server.scheduling.routes import public_router as scheduling_public_router
     from server.scheduling.routes import router as scheduling_router
     from server.sessions.balance import router as balance_router
-    from server.sessions.routes import estop_router, motion_router, websocket_router
+    from server.sessions.routes import estop_router, export_router, motion_router, websocket_router
     from server.sessions.routes import router as sessions_router
     from server.users.routes import router as users_router
     from server.viz.proxy import router as viz_proxy_router
@@ -228,6 +229,7 @@ def _api_router() -> APIRouter:
         reports_router,
         motion_router,
         estop_router,
+        export_router,
         audit_router,
         viz_router,
         viz_proxy_router,
@@ -289,6 +291,7 @@ def create_app(
                     await fanout_task
             if robot is not None:
                 await asyncio.to_thread(robot.close)  # a daemon keeps running; an in-process one stops
+            await asyncio.to_thread(app.state.export_jobs.close)
             if owned_engine is not None:
                 owned_engine.dispose()
 
@@ -315,6 +318,7 @@ def create_app(
     app.state.robot = None
     app.state.fanout = None
     app.state.viz = None
+    app.state.export_jobs = ExportJobs(settings.data_dir / "export-jobs")
     _security_middleware(app, settings)
     _error_handlers(app)
     _install_audit_journal(app, settings)

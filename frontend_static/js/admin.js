@@ -1,10 +1,27 @@
 // Administration (admins only; the API refuses others): accounts and the audit log (issue 16, build §7).
 import { get, patch, post, query } from "./api.js";
+import { exportControl } from "./exports.js";
 import { words } from "./language.js";
 import { badge, banner, clear, clearErrors, confirmDialog, field, fmtDateTime, h, openDialog, showError, showFieldErrors, table } from "./ui.js";
 
 const ROLES = ["therapist", "admin"];
 const AUDIT_PAGE = 100;
+
+// The bulk export of pseudonymised runs for a study, with its progress (issue 20 Build 7).
+function studyExportForm() {
+  const today = new Date().toISOString().slice(0, 10);
+  const from = h("input", { type: "date", value: today, required: true });
+  const to = h("input", { type: "date", value: today, required: true });
+  const diagnosis = h("input", { type: "text", maxlength: 200, placeholder: "any" });
+  const layout = h("select", {}, h("option", { value: "folders" }, "A folder per run (CSV, Parquet, JSON, C3D)"),
+    h("option", { value: "parquet_dataset" }, "Parquet dataset (DuckDB, pandas)"));
+  const freeText = h("input", { type: "checkbox" });
+  const start = () => `/exports/bulk/jobs${query({ from_date: from.value, to_date: to.value, diagnosis: diagnosis.value, layout: layout.value, include_free_text: freeText.checked || undefined })}`;
+  return h("div.panel#study-export", {},
+    h("div.row", {}, field("From (UTC day)", from), field("To (UTC day)", to), field("Diagnosis", diagnosis), field("Layout", layout)),
+    h("label", {}, freeText, " Keep free-text diagnosis and notes (may identify people)"),
+    h("div.row", {}, exportControl("Export the study", start)));
+}
 
 export async function adminPage(main, user) {
   if (!user || user.role !== "admin") {
@@ -14,7 +31,7 @@ export async function adminPage(main, user) {
   const usersHost = h("div#users");
   const auditHost = h("div#audit");
   main.append(h("h1", {}, "Administration"), h("h2", {}, "Accounts"), usersHost, newUserForm(() => loadUsers()),
-    h("h2", {}, "Audit log"), auditHost);
+    h("h2", {}, "Study export"), studyExportForm(), h("h2", {}, "Audit log"), auditHost);
   let names = {};
   async function loadUsers() {
     const users = await get("/users?limit=500");

@@ -3,6 +3,7 @@
 import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
 import { CLINICAL_EVENTS, OUTCOME_WORDS, clinicClock, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
+import { exportControl } from "./exports.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, engineeringOn, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
@@ -297,8 +298,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   }
   function runPanel(run) {
     const format = h("select", { "aria-label": `Export format for run ${run.id}` }, EXPORT_FORMATS.map(([v, t]) => h("option", { value: v }, t)));
-    const link = h("a.button.primary", { href: `/api/v1/sessions/${sessionId}/export?format=csv&run_id=${run.id}`, download: "", dataset: { run: run.id } }, `Export run ${run.id} log`);
-    format.addEventListener("change", () => { link.href = `/api/v1/sessions/${sessionId}/export?format=${format.value}&run_id=${run.id}`; });
+    const link = exportControl(`Export run ${run.id} log`, () => `/sessions/${sessionId}/export/jobs?format=${format.value}&run_id=${run.id}`);
     const parts = {
       title: h("h3.grow"), state: h("span"), summary: h("p"), events: h("div"), notes: notesForm(run),
       replay: h("button.secondary", { type: "button", hidden: true, onclick: () => replay(run.id) }, `Replay run ${run.id} in 3D`),

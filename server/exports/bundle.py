@@ -14,7 +14,7 @@ import io
 import zipfile
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from typing import Any, BinaryIO, cast
 
 from server.exports.formats import (
     EXPORT_FORMATS,
@@ -24,7 +24,7 @@ from server.exports.formats import (
     sidecar,
     write_csv_members,
 )
-from server.exports.log import SessionLog, SessionLogError, to_json
+from server.exports.log import RecordedLog, SessionLogError, to_json
 from server.exports.metadata import identifying_fields
 
 INDEX_COLUMNS = (
@@ -45,11 +45,10 @@ INDEX_COLUMNS = (
 )
 
 
-def index_row(log: SessionLog, folder: str) -> dict[str, Any]:
+def index_row(log: RecordedLog, folder: str) -> dict[str, Any]:
     """One study-index row: who (pseudonymised), when, what diagnosis, and what was recorded."""
     patient = log.metadata.get("patient") or {}
     started = str(log.metadata.get("started_utc", ""))
-    time_s = log.columns["time_s"]
     kinds = Counter(event["kind"] for event in log.events)
     return {
         "session_id": log.session_id,
@@ -61,7 +60,7 @@ def index_row(log: SessionLog, folder: str) -> dict[str, Any]:
         "sex": patient.get("sex"),
         "age_at_session_years": patient.get("age_at_session_years"),
         "prescription_version": (log.metadata.get("prescription") or {}).get("version"),
-        "duration_s": float(time_s[-1] - time_s[0]),
+        "duration_s": log.duration_s,
         "sample_count": log.sample_count,
         "event_count": len(log.events),
         "event_kinds": ";".join(f"{kind}:{count}" for kind, count in sorted(kinds.items())),
@@ -77,7 +76,7 @@ def _index_csv(rows: Iterable[Mapping[str, Any]]) -> bytes:
     return text.getvalue().encode()
 
 
-def write_session_folder(archive: zipfile.ZipFile, folder: str, log: SessionLog, formats: Sequence[str]) -> None:
+def write_session_folder(archive: zipfile.ZipFile, folder: str, log: RecordedLog, formats: Sequence[str]) -> None:
     """One session's folder: `metadata.json` and each format (the CSV files unzipped into the folder)."""
     if "csv" in formats:
         write_csv_members(archive, f"{folder}/", log)  # includes metadata.json
@@ -86,24 +85,25 @@ def write_session_folder(archive: zipfile.ZipFile, folder: str, log: SessionLog,
     for fmt in formats:
         if fmt != "csv":
             writer, _, suffix = check_format(fmt)
-            archive.writestr(f"{folder}/session{suffix}", writer(log))
+            with archive.open(f"{folder}/session{suffix}", "w", force_zip64=True) as member:
+                writer(log, cast(BinaryIO, member))
 
 
-def export_bundle(
-    logs: Sequence[SessionLog],
+def write_bundle(
+    logs: Iterable[RecordedLog],
+    sink: BinaryIO,
     *,
     formats: Sequence[str] = tuple(EXPORT_FORMATS),
     selection: Mapping[str, Any] | None = None,
     allow_identified: bool = False,
-) -> bytes:
-    """One zip for a study: a folder per session, `index.csv` and `index.json` (with `selection`, the
-    criteria the sessions were chosen by, e.g. date range and diagnosis)."""
+) -> None:
+    """One zip for a study, written to `sink` one session at a time: a folder per session, `index.csv` and
+    `index.json` (with `selection`, the criteria the sessions were chosen by, e.g. date range and diagnosis)."""
     for fmt in formats:
         check_format(fmt)
     folders: dict[str, int] = {}
     rows = []
-    buffer = io.BytesIO()
-    with open_zip(buffer) as archive:
+    with open_zip(sink) as archive:
         for index, log in enumerate(logs):
             identifying = identifying_fields(log.metadata.get("patient") or {})
             if identifying and not allow_identified:
@@ -121,4 +121,16 @@ def export_bundle(
         archive.writestr("index.csv", _index_csv(rows))
         index_document = {"selection": dict(selection or {}), "formats": list(formats), "sessions": rows}
         archive.writestr("index.json", to_json(index_document, indent=2))
+
+
+def export_bundle(
+    logs: Sequence[RecordedLog],
+    *,
+    formats: Sequence[str] = tuple(EXPORT_FORMATS),
+    selection: Mapping[str, Any] | None = None,
+    allow_identified: bool = False,
+) -> bytes:
+    """`write_bundle` into memory."""
+    buffer = io.BytesIO()
+    write_bundle(logs, buffer, formats=formats, selection=selection, allow_identified=allow_identified)
     return buffer.getvalue()

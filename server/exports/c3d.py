@@ -10,22 +10,25 @@
 - Analogs run at the telemetry rate; points (plate centres and COP in the lab frame, m) at that rate
   divided by an integer ratio, 100 Hz for 1 kHz telemetry, lowered for long sessions because ezc3d
   reads at most 65535 frames. A last partial frame is padded with NaN analog samples.
+- Frames are the recorded samples at the nominal rate: a late, skipped or lost tick does not refuse the
+  export; the `late` and `tick_gap` analog channels flag it per sample (docs/exports.md).
 - Lab frame: the twin's world frame (core/robot.py), metres. Event times are seconds from the first sample.
 """
 
 from __future__ import annotations
 
 import math
+import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import ezc3d
 import numpy as np
 
 from core.kinematics import rotation_matrices, twin_platform_poses
 from core.robot import DescriptionError, TwinRobot, twin_from_dict
-from server.exports.log import SessionLog, SessionLogError, to_json
+from server.exports.log import RecordedLog, SessionLog, SessionLogError, to_json
 from server.hal.base import FEET
 
 COP_FORCE_THRESHOLD_N = 20.0  # below this a plate carries no foot: COP is noise
@@ -33,6 +36,7 @@ DEFAULT_FOOT_PLATE_SIZE_M = (0.40, 0.25)  # x, y; not in the robot description, 
 MAX_C3D_FRAMES = 65535  # 16-bit frame count in the header and POINT:FRAMES
 TARGET_POINT_RATE_HZ = 100.0
 EVENT_TEXT_MAX = 255  # C3D string dimensions are one byte
+COPY_CHUNK_BYTES = 1 << 20
 PLATE_CHANNELS = ("Fx", "Fy", "Fz", "Px", "Py", "Mz")  # TYPE 1 channel order
 # Channels shown through the force platforms, implicit in the C3D frame numbering, or (POSIX seconds)
 # beyond float32 precision.
@@ -89,15 +93,6 @@ def _require_finite_stance(stance_pose: np.ndarray) -> None:
     bad = np.flatnonzero(~np.all(np.isfinite(stance_pose), axis=1))
     if bad.size:
         raise SessionLogError(f"stance_pose[{bad[0]}]", stance_pose[bad[0]].tolist(), "finite numbers for C3D")
-
-
-def _require_consecutive_ticks(tick: np.ndarray) -> None:
-    gaps = np.flatnonzero(np.diff(tick) != 1)
-    if gaps.size:
-        index = int(gaps[0]) + 1
-        raise SessionLogError(
-            f"tick[{index}]", int(tick[index]), f"C3D needs uniform sampling: must be {int(tick[index - 1]) + 1}"
-        )
 
 
 def _analog_channels(log: SessionLog) -> list[tuple[str, str, str, np.ndarray]]:
@@ -223,11 +218,12 @@ def _add_session_parameters(c3d: Any, log: SessionLog, padded_samples: int) -> s
     return subject
 
 
-def export_c3d(log: SessionLog) -> bytes:
-    """The session as a C3D file (see the module docstring for the conventions)."""
+def write_c3d(recorded: RecordedLog, sink: BinaryIO) -> None:
+    """The session as a C3D file (see the module docstring for the conventions). ezc3d holds the whole file,
+    so this is the one export whose memory grows with the run (docs/exports.md)."""
+    log = recorded.whole()
     twin = _twin(log)
     plate_size_m = _plate_size_m(log)
-    _require_consecutive_ticks(log.columns["tick"])
     _require_finite_stance(log.columns["stance_pose"])
     sample_rate_hz = log.sample_rate_hz
     ratio = c3d_frame_ratio(sample_rate_hz, log.sample_count)
@@ -263,4 +259,5 @@ def export_c3d(log: SessionLog) -> bytes:
     with tempfile.TemporaryDirectory(prefix="ssp-rehab-c3d-") as directory:
         path = Path(directory) / "session.c3d"
         c3d.write(str(path))
-        return path.read_bytes()
+        with path.open("rb") as written:
+            shutil.copyfileobj(written, sink, COPY_CHUNK_BYTES)

@@ -16,18 +16,21 @@ failure leaves nothing half-written.
 
 from __future__ import annotations
 
+import io
 import shutil
 import tempfile
-from collections.abc import Sequence
+import zipfile
+from collections.abc import Callable, Iterable, Sequence
+from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, cast
 
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from server.exports.bundle import index_row
 from server.exports.formats import CODE_TABLES, CONVENTIONS, channel_table
-from server.exports.log import SessionLog, to_json
+from server.exports.log import RecordedLog, to_json
 from server.exports.metadata import identifying_fields
 
 DATA_DICTIONARY_FILE = "data_dictionary.json"
@@ -39,6 +42,8 @@ FIELD_DESCRIPTIONS = {
     "session_time": "time into the session on the session clock (events' session_time_s use the same clock)",
     "session_time_s": "time into the session on the session clock (events' session_time_s use the same clock)",
     "skipped_ticks": "control periods the loop skipped just before this sample: 0 on time, > 0 a gap",
+    "tick_gap": "control periods missing just before this sample (skipped deadlines + lost samples): 0 on time",
+    "late": "1 where the tick started more than 500 us after its deadline (the worker's threshold)",
     "tick": "control tick counter of the worker (skipped periods are not counted)",
     "utc_s": "wall clock, POSIX seconds",
     "plate_force_z_n": "vertical load on each foot plate (right, left)",
@@ -64,7 +69,7 @@ EVENT_COLUMNS = {
 }
 
 
-def _partition(log: SessionLog) -> tuple[str, str]:
+def _partition(log: RecordedLog) -> tuple[str, str]:
     patient = log.metadata.get("patient") or {}
     pseudonym = patient.get("pseudonym_id")
     started = str(log.metadata.get("started_utc", ""))[:10]
@@ -73,7 +78,21 @@ def _partition(log: SessionLog) -> tuple[str, str]:
     return pseudonym, started
 
 
-def _events_table(log: SessionLog) -> pa.Table:
+EVENTS_SCHEMA = pa.schema(
+    [
+        ("session_id", pa.string()),
+        ("kind", pa.string()),
+        ("tick", pa.int64()),
+        ("tick_time_s", pa.float64()),
+        ("session_time_s", pa.float64()),
+        ("utc", pa.string()),
+        ("detector", pa.string()),
+        ("details", pa.string()),
+    ]
+)
+
+
+def _events_table(log: RecordedLog) -> pa.Table:
     rows = [
         {
             "session_id": log.session_id,
@@ -87,39 +106,30 @@ def _events_table(log: SessionLog) -> pa.Table:
         }
         for event in log.events
     ]
-    schema = pa.schema(
-        [
-            ("session_id", pa.string()),
-            ("kind", pa.string()),
-            ("tick", pa.int64()),
-            ("tick_time_s", pa.float64()),
-            ("session_time_s", pa.float64()),
-            ("utc", pa.string()),
-            ("detector", pa.string()),
-            ("details", pa.string()),
-        ]
-    )
-    return pa.Table.from_pylist(rows, schema=schema)
+    return pa.Table.from_pylist(rows, schema=EVENTS_SCHEMA)
 
 
-def data_dictionary(logs: Sequence[SessionLog]) -> dict[str, Any]:
+def _telemetry_columns(log: RecordedLog) -> dict[str, dict[str, Any]]:
+    return {
+        channel.name: {
+            "type": str(channel.values.dtype),
+            "unit": channel.unit,
+            "field": channel.field,
+            "partition": False,
+            "description": FIELD_DESCRIPTIONS.get(channel.field, FIELD_DESCRIPTIONS.get(channel.name, "")),
+        }
+        for channel in log.head.channels()
+    }
+
+
+def data_dictionary(telemetry_columns: dict[str, dict[str, Any]], index_columns: Sequence[str]) -> dict[str, Any]:
     """Every column of the three tables: type, unit, the field it comes from and what it means."""
     telemetry: dict[str, dict[str, Any]] = {
         "pseudonym_id": {"type": "string", "unit": "", "partition": True, "description": "pseudonymised patient"},
         "session_date": {"type": "date", "unit": "", "partition": True, "description": "UTC date of the session"},
         "session_id": {"type": "string", "unit": "", "partition": False, "description": "the session run"},
+        **telemetry_columns,
     }
-    for log in logs:
-        for channel in log.channels():
-            if channel.name not in telemetry:
-                telemetry[channel.name] = {
-                    "type": str(channel.values.dtype),
-                    "unit": channel.unit,
-                    "field": channel.field,
-                    "partition": False,
-                    "description": FIELD_DESCRIPTIONS.get(channel.field, FIELD_DESCRIPTIONS.get(channel.name, "")),
-                }
-    index_columns = sorted({key for log in logs for key in index_row(log, "")} - {"folder"})
     return {
         "layout": "hive-partitioned Parquet: telemetry/ and events/ by pseudonym_id and session_date",
         "read_with": {
@@ -143,59 +153,89 @@ def data_dictionary(logs: Sequence[SessionLog]) -> dict[str, Any]:
     }
 
 
-def write_parquet_dataset(logs: Sequence[SessionLog], root: Path, *, selection: dict[str, Any] | None = None) -> dict:
-    """Write `logs` as a hive-partitioned dataset under `root` (new or empty); returns a summary."""
-    root = Path(root)
-    if root.exists() and any(root.iterdir()):
-        raise ValueError(f"dataset directory {root} is not empty: choose a new one")
+MemberOpener = Callable[[str], AbstractContextManager[BinaryIO]]
+
+
+def write_dataset(
+    logs: Iterable[RecordedLog], open_member: MemberOpener, *, selection: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Write the dataset's files through `open_member(relative path)`, one session and one batch at a time;
+    returns a summary. Refuses an identified patient or a duplicate session id."""
+    seen: set[str] = set()
+    telemetry_columns: dict[str, dict[str, Any]] = {}
+    rows = []
+    samples = 0
     for log in logs:
         identifying = identifying_fields(log.metadata.get("patient") or {})
         if identifying or log.metadata.get("patient_identified"):
             raise ValueError(f"session {log.session_id}: the patient is identified ({identifying}); pseudonymise it")
-    ids = [log.session_id for log in logs]
-    if len(set(ids)) != len(ids):
-        raise ValueError("duplicate session ids in the dataset")
+        if log.session_id in seen:
+            raise ValueError("duplicate session ids in the dataset")
+        seen.add(log.session_id)
+        pseudonym, day = _partition(log)
+        folder = f"pseudonym_id={pseudonym}/session_date={day}"
+        with open_member(f"telemetry/{folder}/{log.session_id}.parquet") as sink:
+            writer = None
+            for batch in log.batches():
+                table = channel_table(batch, header_units=False)
+                table = table.append_column("session_id", pa.array([log.session_id] * batch.sample_count, pa.string()))
+                writer = writer or pq.ParquetWriter(sink, table.schema)
+                writer.write_table(table)
+            if writer is not None:
+                writer.close()
+        with open_member(f"events/{folder}/{log.session_id}.parquet") as sink:
+            pq.write_table(_events_table(log), sink)
+        telemetry_columns = {**_telemetry_columns(log), **telemetry_columns}
+        row = index_row(log, "")
+        row.pop("folder")
+        rows.append(row)
+        samples += log.sample_count
+    with open_member("sessions.parquet") as sink:
+        pq.write_table(pa.Table.from_pylist(rows), sink)
+    dictionary = data_dictionary(telemetry_columns, sorted({key for row in rows for key in row}))
+    dictionary["selection"] = selection or {}
+    with open_member(DATA_DICTIONARY_FILE) as sink:
+        sink.write(to_json(dictionary, indent=2).encode())
+    return {"sessions": len(rows), "samples": samples}
+
+
+def write_parquet_dataset(logs: Sequence[RecordedLog], root: Path, *, selection: dict[str, Any] | None = None) -> dict:
+    """Write `logs` as a hive-partitioned dataset under `root` (new or empty); returns a summary."""
+    root = Path(root)
+    if root.exists() and any(root.iterdir()):
+        raise ValueError(f"dataset directory {root} is not empty: choose a new one")
     root.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".dataset-", dir=root.parent))
+
+    def open_file(relative: str) -> BinaryIO:
+        path = staging / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return path.open("wb")
+
     try:
-        samples = 0
-        for log in logs:
-            pseudonym, day = _partition(log)
-            folder = Path(f"pseudonym_id={pseudonym}") / f"session_date={day}"
-            table = channel_table(log, header_units=False)
-            table = table.append_column("session_id", pa.array([log.session_id] * log.sample_count, pa.string()))
-            for name, content in (("telemetry", table), ("events", _events_table(log))):
-                (staging / name / folder).mkdir(parents=True, exist_ok=True)
-                pq.write_table(content, staging / name / folder / f"{log.session_id}.parquet")
-            samples += log.sample_count
-        rows = [index_row(log, "") for log in logs]
-        for row in rows:
-            row.pop("folder")
-        pq.write_table(pa.Table.from_pylist(rows), staging / "sessions.parquet")
-        dictionary = data_dictionary(logs)
-        dictionary["selection"] = selection or {}
-        (staging / DATA_DICTIONARY_FILE).write_text(to_json(dictionary, indent=2))
+        summary = write_dataset(logs, open_file, selection=selection)
         if root.exists():
             root.rmdir()
         staging.rename(root)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return {"root": str(root), "sessions": len(logs), "samples": samples}
+    return {"root": str(root), **summary}
 
 
-def dataset_zip(logs: Sequence[SessionLog], *, selection: dict[str, Any] | None = None) -> bytes:
-    """The dataset as one zip for download (unzip, then point the reader at the folder). Parquet is already
-    compressed, so the members are stored."""
-    import io
-    import zipfile
+def write_dataset_zip(logs: Iterable[RecordedLog], sink: BinaryIO, *, selection: dict[str, Any] | None = None) -> None:
+    """The dataset as one zip for download (unzip, then point the reader at the folder), streamed to `sink`.
+    Parquet is already compressed, so the members are stored."""
+    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED) as archive:
 
-    with tempfile.TemporaryDirectory(prefix="ssp-rehab-dataset-") as scratch:
-        root = Path(scratch) / "dataset"
-        write_parquet_dataset(logs, root, selection=selection)
-        buffer = io.BytesIO()
-        with zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_STORED) as archive:
-            for path in sorted(root.rglob("*")):
-                if path.is_file():
-                    archive.write(path, path.relative_to(root).as_posix())
-        return buffer.getvalue()
+        def open_member(relative: str) -> BinaryIO:
+            return cast(BinaryIO, archive.open(relative, "w", force_zip64=True))
+
+        write_dataset(logs, open_member, selection=selection)
+
+
+def dataset_zip(logs: Sequence[RecordedLog], *, selection: dict[str, Any] | None = None) -> bytes:
+    """`write_dataset_zip` into memory."""
+    buffer = io.BytesIO()
+    write_dataset_zip(logs, buffer, selection=selection)
+    return buffer.getvalue()

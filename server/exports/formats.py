@@ -14,7 +14,7 @@ import io
 import json
 import zipfile
 from collections.abc import Callable
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import pyarrow as pa
@@ -22,8 +22,8 @@ import pyarrow.csv as pa_csv
 import pyarrow.parquet as pq
 
 from core.plan.limits import LimitCode
-from server.exports.c3d import COP_FORCE_THRESHOLD_N, export_c3d
-from server.exports.log import SessionLog, SessionLogError, to_json
+from server.exports.c3d import COP_FORCE_THRESHOLD_N, write_c3d
+from server.exports.log import RecordedLog, SessionLog, SessionLogError, to_json
 from server.hal.base import DriveState
 from server.realtime.telemetry import HAL_STATES_BY_CODE, StopReason, SupervisorState
 
@@ -53,28 +53,27 @@ CODE_TABLES: dict[str, dict[int, str]] = {
 }
 
 
-def sidecar(log: SessionLog) -> dict[str, Any]:
+def sidecar(log: RecordedLog) -> dict[str, Any]:
     """The metadata sidecar: the log's metadata plus how the recording is laid out, units per channel."""
-    time_s = log.columns["time_s"]
-    fields = {
-        name: {"dtype": str(values.dtype), "shape": list(values.shape[1:])} for name, values in log.columns.items()
-    }
+    columns = log.head.columns
+    fields = {name: {"dtype": str(values.dtype), "shape": list(values.shape[1:])} for name, values in columns.items()}
     recording = {
         "sample_count": log.sample_count,
-        "duration_s": float(time_s[-1] - time_s[0]),
-        "first_tick": int(log.columns["tick"][0]),
+        "duration_s": log.duration_s,
+        "first_tick": log.first_tick,
         "event_count": len(log.events),
         "fields": fields,
-        "channels": log.channel_units(),
-        "codes": {name: table for name, table in CODE_TABLES.items() if name in log.columns},
+        "channels": log.head.channel_units(),
+        "codes": {name: table for name, table in CODE_TABLES.items() if name in columns},
         "conventions": CONVENTIONS,
     }
     return {**log.metadata, "recording": recording}
 
 
-def open_zip(buffer: io.BytesIO) -> zipfile.ZipFile:
-    """A zip for exports: deflate level 1, because level 6 is ~5x slower for ~15 % smaller telemetry."""
-    return zipfile.ZipFile(buffer, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
+def open_zip(sink: BinaryIO) -> zipfile.ZipFile:
+    """A zip for exports: deflate level 1, because level 6 is ~5x slower for ~15 % smaller telemetry. On a
+    sink that cannot seek (a pipe, `stream.ForwardSink`) zipfile writes data descriptors, so it streams."""
+    return zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
 
 
 def channel_table(log: SessionLog, *, header_units: bool) -> pa.Table:
@@ -88,7 +87,7 @@ def channel_table(log: SessionLog, *, header_units: bool) -> pa.Table:
     return pa.Table.from_arrays(arrays, schema=pa.schema(schema_fields))
 
 
-def events_csv(log: SessionLog) -> bytes:
+def events_csv(log: RecordedLog) -> bytes:
     text = io.StringIO()
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(EVENT_CSV_HEADER)
@@ -106,31 +105,37 @@ def events_csv(log: SessionLog) -> bytes:
     return text.getvalue().encode()
 
 
-def write_csv_members(archive: zipfile.ZipFile, folder: str, log: SessionLog) -> None:
+def write_csv_members(archive: zipfile.ZipFile, folder: str, log: RecordedLog) -> None:
     """Write `telemetry.csv` (a time column first, one column per channel, `name [unit]` headers),
-    `events.csv` and `metadata.json` into `folder` of an open zip, streaming the telemetry."""
+    `events.csv` and `metadata.json` into `folder` of an open zip, the telemetry batch by batch."""
     with archive.open(f"{folder}telemetry.csv", "w", force_zip64=True) as telemetry:
-        pa_csv.write_csv(channel_table(log, header_units=True), telemetry)
+        writer = None
+        for batch in log.batches():
+            table = channel_table(batch, header_units=True)
+            writer = writer or pa_csv.CSVWriter(telemetry, table.schema)
+            writer.write_table(table)
+        if writer is not None:
+            writer.close()
     archive.writestr(f"{folder}events.csv", events_csv(log))
     archive.writestr(f"{folder}metadata.json", to_json(sidecar(log), indent=2))
 
 
-def export_csv(log: SessionLog) -> bytes:
-    buffer = io.BytesIO()
-    with open_zip(buffer) as archive:
+def write_csv(log: RecordedLog, sink: BinaryIO) -> None:
+    with open_zip(sink) as archive:
         write_csv_members(archive, "", log)
-    return buffer.getvalue()
 
 
-def export_parquet(log: SessionLog) -> bytes:
-    """A Parquet table of the channels; units in field metadata, sidecar and events in schema metadata."""
-    table = channel_table(log, header_units=False)
-    table = table.replace_schema_metadata(
-        {METADATA_KEY: to_json(sidecar(log)).encode(), EVENTS_KEY: to_json(log.events).encode()}
-    )
-    buffer = io.BytesIO()
-    pq.write_table(table, buffer)
-    return buffer.getvalue()
+def write_parquet(log: RecordedLog, sink: BinaryIO) -> None:
+    """A Parquet table of the channels; units in field metadata, sidecar and events in schema metadata.
+    One row group per batch."""
+    metadata = {METADATA_KEY: to_json(sidecar(log)).encode(), EVENTS_KEY: to_json(log.events).encode()}
+    writer = None
+    for batch in log.batches():
+        table = channel_table(batch, header_units=False).replace_schema_metadata(metadata)
+        writer = writer or pq.ParquetWriter(sink, table.schema)
+        writer.write_table(table)
+    if writer is not None:
+        writer.close()
 
 
 def _json_column(values: np.ndarray) -> list[Any]:
@@ -141,17 +146,19 @@ def _json_column(values: np.ndarray) -> list[Any]:
     return values.tolist()
 
 
-def export_json(log: SessionLog) -> bytes:
+def write_json(log: RecordedLog, sink: BinaryIO) -> None:
     """One JSON document `{metadata, events, columns}`; columns keep their field names and shapes.
 
-    Encoded one column at a time: the Python lists of a whole session at 1 kHz would need gigabytes.
-    """
-    parts = [b'{"metadata":', to_json(sidecar(log)).encode(), b',"events":', to_json(log.events).encode()]
-    for index, name in enumerate(log.field_order()):
-        column = json.dumps(_json_column(log.columns[name]), allow_nan=False, separators=(",", ":"))
-        parts += [b',"columns":{' if index == 0 else b",", json.dumps(name).encode(), b":", column.encode()]
-    parts.append(b"}}")
-    return b"".join(parts)
+    Written one column and one batch at a time: the Python lists of a whole session at 1 kHz would need
+    gigabytes."""
+    sink.write(b'{"metadata":' + to_json(sidecar(log)).encode() + b',"events":' + to_json(log.events).encode())
+    for index, name in enumerate(log.head.field_order()):
+        sink.write((b',"columns":{' if index == 0 else b",") + json.dumps(name).encode() + b":[")
+        for number, column in enumerate(log.column_batches(name)):
+            values = json.dumps(_json_column(column), allow_nan=False, separators=(",", ":"))
+            sink.write((b"," if number else b"") + values[1:-1].encode())
+        sink.write(b"]")
+    sink.write(b"}}")
 
 
 def session_log_from_json(data: bytes | str) -> SessionLog:
@@ -168,17 +175,17 @@ def session_log_from_json(data: bytes | str) -> SessionLog:
     return SessionLog(columns=columns, events=document["events"], metadata=metadata)
 
 
-ExportWriter = Callable[[SessionLog], bytes]
+ExportWriter = Callable[[RecordedLog, BinaryIO], None]
 # format -> (writer, media type, file name suffix)
 EXPORT_FORMATS: dict[str, tuple[ExportWriter, str, str]] = {
-    "csv": (export_csv, "application/zip", "-csv.zip"),
-    "parquet": (export_parquet, "application/vnd.apache.parquet", ".parquet"),
-    "json": (export_json, "application/json", ".json"),
-    "c3d": (export_c3d, "application/octet-stream", ".c3d"),
+    "csv": (write_csv, "application/zip", "-csv.zip"),
+    "parquet": (write_parquet, "application/vnd.apache.parquet", ".parquet"),
+    "json": (write_json, "application/json", ".json"),
+    "c3d": (write_c3d, "application/octet-stream", ".c3d"),
 }
 
 
-def session_file_stem(log: SessionLog) -> str:
+def session_file_stem(log: RecordedLog) -> str:
     """`session-<id>`, with anything but letters, digits, `-`, `_` and `.` replaced, safe as a file name."""
     safe_id = "".join(c if c.isascii() and (c.isalnum() or c in "-_.") else "_" for c in log.session_id)
     return f"session-{safe_id}"
@@ -190,7 +197,10 @@ def check_format(fmt: str) -> tuple[ExportWriter, str, str]:
     return EXPORT_FORMATS[fmt]
 
 
-def export_session(log: SessionLog, fmt: str) -> tuple[bytes, str, str]:
-    """(file bytes, media type, file name) of one session log in `fmt`: csv | parquet | json | c3d."""
+def export_session(log: RecordedLog, fmt: str) -> tuple[bytes, str, str]:
+    """(file bytes, media type, file name) of one session log in `fmt`: csv | parquet | json | c3d, in
+    memory (the service streams with the writers of `EXPORT_FORMATS` instead)."""
     writer, media_type, suffix = check_format(fmt)
-    return writer(log), media_type, session_file_stem(log) + suffix
+    buffer = io.BytesIO()
+    writer(log, buffer)
+    return buffer.getvalue(), media_type, session_file_stem(log) + suffix

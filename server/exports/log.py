@@ -14,12 +14,13 @@ import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from itertools import product
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from core.errors import InvalidValueError
 from server.hal.base import AXIS_COUNT, FEET
+from server.realtime.loop import LATE_THRESHOLD_NS
 
 SLIDER_LABELS = tuple(f"{foot}_{slider}" for foot in FEET for slider in range(1, AXIS_COUNT // len(FEET) + 1))
 POSE_LABELS = ("x", "y", "z", "roll", "pitch", "yaw")
@@ -58,6 +59,8 @@ TELEMETRY_LAYOUTS: dict[str, FieldLayout] = {
     "harness_load_n": FieldLayout((), ()),
     "tick_compute_us": FieldLayout((), ()),
     "lateness_us": FieldLayout((), ()),
+    "late": FieldLayout((), ()),
+    "tick_gap": FieldLayout((), ()),
 }
 
 # Issue 6 §5: cues, platform pose, slider positions and forces, plate Fz and COP per foot, harness load.
@@ -91,9 +94,10 @@ NAME_SUFFIX_UNITS = (
     ("_n", "N"),
     ("_s", "s"),
 )
-# Ticks may be late or lost, but a log whose median interval is off by more than this is mislabelled
-# (e.g. ms stored as s) and would be exported with a wrong time base.
-SAMPLE_RATE_TOLERANCE = 0.02
+# Per-sample timing flags the exporters add (docs/exports.md "Time per sample"): a late or skipped tick is
+# flagged, never a reason to refuse an export. `late` uses the worker's own threshold.
+LATE_THRESHOLD_US = LATE_THRESHOLD_NS / 1000
+TIMING_FLAGS = ("late", "tick_gap")
 
 
 class SessionLogError(InvalidValueError):
@@ -154,17 +158,44 @@ class SessionLog:
     columns: dict[str, np.ndarray]
     events: list[dict[str, Any]] = field(default_factory=list)
     metadata: dict[str, Any] = field(default_factory=dict)
+    previous_tick: int | None = None  # for one batch of a longer run: the tick of the sample before it
 
     def __post_init__(self) -> None:
         self.columns = {name: np.asarray(values) for name, values in self.columns.items()}
         self.events = [normalised_event(index, event) for index, event in enumerate(self.events)]
         self.metadata = dict(self.metadata)
         validate_columns(self.columns)
-        validate_metadata(self.metadata, self.columns["time_s"], elapsed_periods(self.columns))
+        validate_metadata(self.metadata)
+        for name, values in timing_flags(self.columns, self.previous_tick).items():
+            self.columns.setdefault(name, values)
 
     @property
     def sample_count(self) -> int:
         return len(self.columns["time_s"])
+
+    @property
+    def head(self) -> SessionLog:
+        """A log with every column, to read the layout from (`RecordedLog`): itself."""
+        return self
+
+    @property
+    def first_tick(self) -> int:
+        return int(self.columns["tick"][0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.columns["time_s"][-1] - self.columns["time_s"][0])
+
+    def batches(self) -> Iterator[SessionLog]:
+        """The telemetry in batches (`RecordedLog`): one, itself."""
+        yield self
+
+    def column_batches(self, name: str) -> Iterator[np.ndarray]:
+        """One field's values in batches (`RecordedLog`): one, the column."""
+        yield self.columns[name]
+
+    def whole(self) -> SessionLog:
+        return self
 
     @property
     def sample_rate_hz(self) -> float:
@@ -204,6 +235,30 @@ class SessionLog:
                 yield Channel(name, unit, field_name, np.ascontiguousarray(flat[:, index]))
 
 
+class RecordedLog(Protocol):
+    """What the exporters write from: a `SessionLog` in memory, or a run read in batches
+    (`server.exports.stream.LogStream`) so that no export holds a whole run."""
+
+    metadata: dict[str, Any]
+    events: list[dict[str, Any]]
+
+    @property
+    def head(self) -> SessionLog: ...
+    @property
+    def session_id(self) -> str: ...
+    @property
+    def sample_rate_hz(self) -> float: ...
+    @property
+    def sample_count(self) -> int: ...
+    @property
+    def first_tick(self) -> int: ...
+    @property
+    def duration_s(self) -> float: ...
+    def batches(self) -> Iterator[SessionLog]: ...
+    def column_batches(self, name: str) -> Iterator[np.ndarray]: ...
+    def whole(self) -> SessionLog: ...
+
+
 def validate_columns(columns: Mapping[str, np.ndarray]) -> None:
     """Refuse a log whose columns are missing, of unequal length, misshapen or not numbers, naming the column."""
     for name in REQUIRED_COLUMNS:
@@ -238,21 +293,26 @@ def _validate_clock(time_s: np.ndarray, tick: np.ndarray) -> None:
             raise SessionLogError(f"{name}[{index}]", values[index].item(), f"must exceed {values[index - 1].item()}")
 
 
-def elapsed_periods(columns: Mapping[str, np.ndarray]) -> np.ndarray | None:
-    """Control periods between consecutive samples (ticks run plus deadlines skipped), when the log records
-    skipped ticks; None otherwise."""
+def timing_flags(columns: Mapping[str, np.ndarray], previous_tick: int | None = None) -> dict[str, np.ndarray]:
+    """Per sample: `tick_gap`, the control periods missing just before it (deadlines the loop skipped plus
+    tick numbers missing from the recording; 0 on time), and `late` (1 where the tick started more than the
+    worker's 500 µs after its deadline; only when the log has `lateness_us`)."""
+    tick = columns["tick"].astype(np.int64)
+    first = tick[0] - 1 if previous_tick is None else previous_tick
+    gap = np.diff(tick, prepend=first) - 1
     skipped = columns.get("skipped_ticks")
-    if skipped is None or len(skipped) < 2:
-        return None
-    return np.diff(columns["tick"]).astype(float) + np.asarray(skipped[1:], dtype=float)
+    if skipped is not None:
+        gap = gap + skipped.astype(np.int64)
+    flags = {"tick_gap": gap.astype(np.uint32)}
+    lateness = columns.get("lateness_us")
+    if lateness is not None:
+        flags["late"] = (np.asarray(lateness) > LATE_THRESHOLD_US).astype(np.uint8)
+    return flags
 
 
-def validate_metadata(metadata: Mapping[str, Any], time_s: np.ndarray, periods: np.ndarray | None = None) -> None:
-    """Refuse metadata without a session id or with a sample rate the time column contradicts.
-
-    With `periods` (control periods between samples, see `elapsed_periods`) the measured period is the time
-    span over the periods elapsed: a loaded worker's catch-up ticks come closer together than the nominal
-    period (their median once read 1075 Hz for a 1 kHz run) but the deadline grid keeps the nominal rate."""
+def validate_metadata(metadata: Mapping[str, Any]) -> None:
+    """Refuse metadata without a session id or a sample rate. The rate is the nominal control rate, whatever
+    the tick stamps say: late and skipped ticks are flagged per sample (`timing_flags`), never refused."""
     for key in REQUIRED_METADATA:
         if key not in metadata:
             raise SessionLogError(f"metadata.{key}", None, "required")
@@ -262,16 +322,6 @@ def validate_metadata(metadata: Mapping[str, Any], time_s: np.ndarray, periods: 
     rate = metadata["sample_rate_hz"]
     if isinstance(rate, bool) or not isinstance(rate, int | float) or not math.isfinite(rate) or rate <= 0:
         raise SessionLogError("metadata.sample_rate_hz", rate, "a finite number > 0")
-    if len(time_s) > 1:
-        if periods is not None and float(np.sum(periods)) > 0:
-            measured_hz = float(np.sum(periods)) / float(time_s[-1] - time_s[0])
-        else:
-            # The median interval: lost ticks (gaps) and late ticks must not make a log unexportable.
-            measured_hz = 1.0 / float(np.median(np.diff(time_s)))
-        if abs(measured_hz - rate) > SAMPLE_RATE_TOLERANCE * rate:
-            raise SessionLogError(
-                "metadata.sample_rate_hz", rate, f"time_s is sampled at {measured_hz:.6g} Hz (tolerance 2 %)"
-            )
     try:
         json.dumps(metadata, default=json_default, allow_nan=False)
     except (TypeError, ValueError) as error:

@@ -1,4 +1,4 @@
-"""Reading a run's durable session log back as a `server.exports.SessionLog` (issue 6 §5): the telemetry
+"""Reading a run's durable session log back for the exporters (issue 6 §5, issue 20 Build 7): the telemetry
 columns, the events with tick and UTC time and their detector, and the metadata sidecar built by
 `server.exports.session_metadata` (patient pseudonymised unless an admin asks otherwise, prescription
 version, washout parameters, geometry, software version)."""
@@ -6,6 +6,7 @@ version, washout parameters, geometry, software version)."""
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -46,33 +47,17 @@ def sample_rate_hz(events: list[dict[str, Any]]) -> float:
     return float(Settings.model_fields["control_rate_hz"].default)
 
 
-def clocked_events(
-    events: list[SessionEvent], columns: dict[str, np.ndarray]
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Events as the exporters take them, and those that cannot be placed on the tick clock.
-
-    Console commands recorded while the worker's clock was unknown get the tick of the telemetry sample
-    nearest to their UTC time (flagged `tick_from_utc`)."""
-    placed, unplaced = [], []
-    utc_s = columns.get("utc_s")
-    for event in events:
-        record: dict[str, Any] = {
-            "kind": event.kind,
-            "tick": event.tick,
-            "tick_time_s": event.tick_time_s,
-            "utc": event.utc.isoformat(),
-            "detector": event.detector,
-            "details": dict(event.details),
-        }
-        if event.tick is None or event.tick_time_s is None:
-            if utc_s is None or not len(utc_s):
-                unplaced.append(record)
-                continue
-            index = int(np.clip(np.searchsorted(utc_s, event.utc.timestamp()), 0, len(utc_s) - 1))
-            record.update(tick=int(columns["tick"][index]), tick_time_s=float(columns["time_s"][index]))
-            record["details"]["tick_from_utc"] = True
-        placed.append(record)
-    return placed, unplaced
+def event_record(event: SessionEvent) -> dict[str, Any]:
+    """A stored event as the exporters take it (its tick may still be unknown: see
+    `server.exports.stream.clocked_events`)."""
+    return {
+        "kind": event.kind,
+        "tick": event.tick,
+        "tick_time_s": event.tick_time_s,
+        "utc": event.utc.isoformat(),
+        "detector": event.detector,
+        "details": dict(event.details),
+    }
 
 
 def patient_record(patient: Patient, *, include_free_text: bool = False) -> dict[str, Any]:
@@ -93,11 +78,12 @@ def patient_record(patient: Patient, *, include_free_text: bool = False) -> dict
     return record
 
 
-def session_log(
+def run_header(
     *, session: Session, run_id: int, twin: TwinRobot, salt: bytes, identify: bool, include_free_text: bool = False
-) -> Any:
-    """One run's `server.exports.SessionLog`: telemetry columns, events and the metadata sidecar."""
-    from server.exports import SessionLog, session_metadata
+) -> dict[str, Any]:
+    """What an export needs of a run besides its telemetry: the metadata sidecar (`server.exports.
+    session_metadata`) and the stored events, their ticks not yet placed (`clocked_events` does that)."""
+    from server.exports import session_metadata
 
     run = get_run(session=session, run_id=run_id)
     booking = session.get(ScheduledSession, run.scheduled_session_id)
@@ -105,9 +91,8 @@ def session_log(
     assert booking is not None and version is not None  # foreign keys guarantee both
     patient = session.get(Patient, booking.patient_id)
     assert patient is not None
-    columns = telemetry_columns(session=session, run_id=run.id)
-    stored_events = session.scalars(select(SessionEvent).where(SessionEvent.run_id == run.id).order_by(SessionEvent.id))
-    events, unplaced = clocked_events(list(stored_events), columns)
+    stored = session.scalars(select(SessionEvent).where(SessionEvent.run_id == run.id).order_by(SessionEvent.id))
+    events = [event_record(event) for event in stored]
     metadata = session_metadata(
         session_id=f"run-{run.id}",
         started_utc=run.started_at,
@@ -127,9 +112,18 @@ def session_log(
         "ended_utc": run.ended_at.isoformat() if run.ended_at else None,
         "prescription_id": version.prescription_id,
     }
-    if unplaced:
-        metadata["events_without_tick"] = unplaced
-    return SessionLog(columns=columns, events=events, metadata=metadata)
+    return {"metadata": metadata, "events": events}
+
+
+def telemetry_blobs(*, session: Session, run_id: int) -> Iterator[bytes]:
+    """The run's stored telemetry chunks (`.npy` blobs) in order, fetched a few at a time."""
+    query = select(TelemetryChunk.data).where(TelemetryChunk.run_id == run_id).order_by(TelemetryChunk.sequence)
+    found = False
+    for data in session.execute(query.execution_options(yield_per=8)).scalars():
+        found = True
+        yield data
+    if not found:
+        raise ConflictError(f"session run {run_id} has no recorded telemetry to export")
 
 
 def study_run_ids(*, session: Session, start: dt.date, end: dt.date, diagnosis: str | None) -> list[tuple[int, int]]:

@@ -13,6 +13,7 @@ from fastapi import (
     APIRouter,
     Depends,
     HTTPException,
+    Path,
     Query,
     Request,
     Response,
@@ -22,7 +23,7 @@ from fastapi import (
 )
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from server import exports
@@ -30,7 +31,6 @@ from server.api_types import MAX_ID, NO_NUL_PATTERN, IdPath
 from server.audit import service as audit
 from server.auth.dependencies import (
     AuthState,
-    CurrentUser,
     auth_state,
     authenticated_claims,
     claims_for_token,
@@ -42,9 +42,10 @@ from server.auth.dependencies import (
 )
 from server.auth.safe_commands import SafeCommandUser
 from server.auth.security import TokenClaims
-from server.db import Database, SessionDep, writes
-from server.errors import ConflictError, NotFoundError, WorkerUnavailableError
-from server.exports.dataset import dataset_zip
+from server.db import Database, SessionDep, get_session, writes
+from server.errors import NotFoundError, WorkerUnavailableError
+from server.exports.jobs import ExportJob, ExportJobs, ExportResponse
+from server.exports.log import to_json
 from server.jsonable import to_jsonable
 from server.reviews.service import refuse_start_while_unacknowledged
 from server.robotd import estop
@@ -55,6 +56,7 @@ from server.sessions import logs, service
 from server.sessions.models import SessionRun
 from server.sessions.schemas import EmergencyStopResult, SessionEventOut, SessionRunOut
 from server.sessions.worker import RobotLink
+from server.users.models import User
 
 logger = logging.getLogger(__name__)
 
@@ -64,6 +66,9 @@ motion_router = APIRouter(tags=["sessions"])
 # The emergency stop needs no login at all: the console page must always be able to stop motion.
 estop_router = APIRouter(tags=["sessions"])
 websocket_router = APIRouter()
+# Exports stream after the route returns: their database session and login check end before the response
+# (scope "function"), so no request holds a connection while an export process builds the file.
+export_router = APIRouter(tags=["exports"])
 
 NO_ROBOT_HERE = "this console runs without a robot"
 NO_ROBOT = "no robot connected: the robot daemon is not attached (records, schedules and exports still work)"
@@ -266,34 +271,50 @@ def list_events(run_id: IdPath, session: SessionDep) -> list[SessionEventOut]:
 
 
 # --- export --------------------------------------------------------------------------------------
+# Built by export processes and streamed (docs/exports.md "Streaming and jobs"): the GET routes stream at once
+# (for scripts), the POST …/jobs routes start a job whose progress `GET /exports/jobs/{id}` shows.
 
 
-def _log_for_run(request: Request, session: Any, run_id: int, identify: bool, include_free_text: bool = False) -> Any:
-    return logs.session_log(
-        session=session,
-        run_id=run_id,
-        twin=request.app.state.twin,
-        salt=request.app.state.pseudonym_key,
-        identify=identify,
-        include_free_text=include_free_text,
-    )
+ExportSessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 
-@router.get(
-    "/sessions/{session_id}/export",
-    response_class=Response,
-    responses={200: {"content": {"application/octet-stream": {}}, "description": "The run's session log"}},
-)
-def export_session(
-    session_id: IdPath,
-    request: Request,
-    session: SessionDep,
-    user: CurrentUser,
-    export_format: Annotated[ExportFormat, Query(alias="format")] = "csv",
-    run_id: Annotated[int | None, Query(ge=1, le=MAX_ID, description="Default: the latest run.")] = None,
-    identify: Annotated[bool, Query(description="Include name and record number (admin only).")] = False,
-) -> Response:
-    """One self-describing bundle of a session run: telemetry, events and a metadata sidecar."""
+def export_user(session: ExportSessionDep, claims: Annotated[TokenClaims, Depends(authenticated_claims)]) -> User:
+    return current_user(session, claims)
+
+
+ExportUser = Annotated[User, Depends(export_user)]
+
+
+def export_jobs(request: Request) -> ExportJobs:
+    jobs: ExportJobs = request.app.state.export_jobs
+    return jobs
+
+
+def _feed_runs(request: Request, run_ids: list[int], identify: bool, include_free_text: bool) -> Any:
+    """The export's feed: each run's header and stored telemetry chunks, read in the feeder thread, one
+    database session per run."""
+    database: Database = request.app.state.database
+    twin, salt = request.app.state.twin, request.app.state.pseudonym_key
+
+    def feed(send: Any) -> None:
+        for run_id in run_ids:
+            with database.session() as session:
+                header = logs.run_header(
+                    session=session, run_id=run_id, twin=twin, salt=salt, identify=identify,
+                    include_free_text=include_free_text,
+                )  # fmt: skip
+                send(b"R", to_json(header).encode())
+                for blob in logs.telemetry_blobs(session=session, run_id=run_id):
+                    send(b"C", blob)
+                send(b"E", b"")
+
+    return feed
+
+
+def _session_export_job(
+    request: Request, session: Session, user: User, session_id: int, export_format: str,
+    run_id: int | None, identify: bool,
+) -> ExportJob:  # fmt: skip
     if identify and user.role != "admin":
         raise HTTPException(status.HTTP_403_FORBIDDEN, detail="identify = true: needs the admin role")
     booking = get_booking(session=session, session_id=session_id)
@@ -303,12 +324,6 @@ def export_session(
     run = session.scalars(query.limit(1)).first()
     if run is None:
         raise NotFoundError(f"session {session_id} run", run_id if run_id is not None else "(any)")
-    try:
-        body, media_type, filename = exports.export_session(
-            _log_for_run(request, session, run.id, identify), export_format
-        )
-    except exports.SessionLogError as error:
-        raise ConflictError(f"session run {run.id} cannot be exported: {error}", field=error.field) from error
     _audit(
         session=session,
         user_id=user.id,
@@ -317,56 +332,159 @@ def export_session(
         resource_id=run.id,
         details={"patient_id": booking.patient_id, "format": export_format, "identified": identify},
     )
-    return Response(body, media_type=media_type, headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+    _, media_type, suffix = exports.EXPORT_FORMATS[export_format]
+    job = ExportJob(
+        owner_id=user.id,
+        spec={"kind": "session", "format": export_format},
+        feed=_feed_runs(request, [run.id], identify, False),
+        filename=f"session-run-{run.id}{suffix}",
+        media_type=media_type,
+        total_samples=run.sample_count,
+        description=f"run {run.id} as {export_format}",
+    )
+    return export_jobs(request).submit(job)
 
 
-@router.get(
-    "/exports/bulk",
+@export_router.get(
+    "/sessions/{session_id}/export",
     response_class=Response,
-    responses={200: {"content": {"application/zip": {}}, "description": "Zip of pseudonymised session logs"}},
+    responses={
+        200: {"content": {"application/octet-stream": {}}, "description": "The run's session log, streamed"},
+        409: {"description": "The export failed before its first byte; `detail` says why"},
+    },
 )
-def export_study(
+def export_session(
+    session_id: IdPath,
     request: Request,
-    session: SessionDep,
-    user: CurrentUser,
-    from_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
-    to_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
-    diagnosis: Annotated[str | None, Query(max_length=200, pattern=NO_NUL_PATTERN)] = None,
-    layout: Annotated[
-        Literal["folders", "parquet_dataset"],
-        Query(description="folders: a folder per run; parquet_dataset: hive-partitioned Parquet (docs/exports.md)."),
-    ] = "folders",
-    include_free_text: Annotated[bool, Query(description="Keep the free-text diagnosis and notes.")] = False,
+    session: ExportSessionDep,
+    user: ExportUser,
+    export_format: Annotated[ExportFormat, Query(alias="format")] = "csv",
+    run_id: Annotated[int | None, Query(ge=1, le=MAX_ID, description="Default: the latest run.")] = None,
+    identify: Annotated[bool, Query(description="Include name and record number (admin only).")] = False,
 ) -> Response:
-    """Pseudonymised session logs of every recorded run started from `from_date` to `to_date` (UTC days)."""
+    """One self-describing bundle of a session run: telemetry, events and a metadata sidecar, streamed as an
+    export process builds it."""
+    job = _session_export_job(request, session, user, session_id, export_format, run_id, identify)
+    return ExportResponse(export_jobs(request), job, "the session run cannot be exported")
+
+
+@export_router.post("/sessions/{session_id}/export/jobs", status_code=status.HTTP_202_ACCEPTED)
+def start_session_export(
+    session_id: IdPath,
+    request: Request,
+    session: ExportSessionDep,
+    user: ExportUser,
+    export_format: Annotated[ExportFormat, Query(alias="format")] = "csv",
+    run_id: Annotated[int | None, Query(ge=1, le=MAX_ID, description="Default: the latest run.")] = None,
+    identify: Annotated[bool, Query(description="Include name and record number (admin only).")] = False,
+) -> dict[str, Any]:
+    """Start the run's export as a job: follow it at `GET /exports/jobs/{id}`, fetch it at …/download."""
+    job = _session_export_job(request, session, user, session_id, export_format, run_id, identify)
+    return job.status()
+
+
+def _study_export_job(
+    request: Request, session: Session, user: User, from_date: dt.date, to_date: dt.date,
+    diagnosis: str | None, layout: str, include_free_text: bool,
+) -> ExportJob:  # fmt: skip
     rows = logs.study_run_ids(session=session, start=from_date, end=to_date, diagnosis=diagnosis)
     if not rows:
         raise NotFoundError("recorded session runs in that range", f"{from_date}..{to_date}")
-    selection = {"from_date": str(from_date), "to_date": str(to_date), "diagnosis": diagnosis}
-    try:
-        study = [_log_for_run(request, session, r, False, include_free_text) for r, _ in rows]
-        if layout == "parquet_dataset":
-            bundle = dataset_zip(study, selection=selection)
-        else:
-            bundle = exports.export_bundle(study, selection=selection)
-    except exports.SessionLogError as error:
-        raise ConflictError(f"the study bundle cannot be exported: {error}", field=error.field) from error
+    run_ids = [r for r, _ in rows]
+    total = session.scalar(select(func.sum(SessionRun.sample_count)).where(SessionRun.id.in_(run_ids))) or 0
     _audit(
         session=session,
         user_id=user.id,
         action="export",
         resource_type="study",
         details={
-            "run_ids": [r for r, _ in rows],
+            "run_ids": run_ids,
             "patient_ids": sorted({p for _, p in rows}),
             "layout": layout,
             "free_text": include_free_text,
         },
     )
-    filename = f"ssp-rehab-study-{from_date}-{to_date}{'-parquet' if layout == 'parquet_dataset' else ''}.zip"
-    return Response(
-        bundle, media_type="application/zip", headers={"Content-Disposition": f'attachment; filename="{filename}"'}
+    selection = {"from_date": str(from_date), "to_date": str(to_date), "diagnosis": diagnosis}
+    job = ExportJob(
+        owner_id=user.id,
+        spec={"kind": "study", "layout": layout, "selection": selection},
+        feed=_feed_runs(request, run_ids, False, include_free_text),
+        filename=f"ssp-rehab-study-{from_date}-{to_date}{'-parquet' if layout == 'parquet_dataset' else ''}.zip",
+        media_type="application/zip",
+        total_samples=int(total),
+        description=f"study {from_date}..{to_date}: {len(run_ids)} runs ({layout})",
     )
+    return export_jobs(request).submit(job)
+
+
+StudyLayout = Annotated[
+    Literal["folders", "parquet_dataset"],
+    Query(description="folders: a folder per run; parquet_dataset: hive-partitioned Parquet (docs/exports.md)."),
+]
+
+
+@export_router.get(
+    "/exports/bulk",
+    response_class=Response,
+    responses={
+        200: {"content": {"application/zip": {}}, "description": "Zip of pseudonymised session logs, streamed"},
+        409: {"description": "The export failed before its first byte; `detail` says why"},
+    },
+)
+def export_study(
+    request: Request,
+    session: ExportSessionDep,
+    user: ExportUser,
+    from_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
+    to_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
+    diagnosis: Annotated[str | None, Query(max_length=200, pattern=NO_NUL_PATTERN)] = None,
+    layout: StudyLayout = "folders",
+    include_free_text: Annotated[bool, Query(description="Keep the free-text diagnosis and notes.")] = False,
+) -> Response:
+    """Pseudonymised session logs of every recorded run started from `from_date` to `to_date` (UTC days),
+    streamed as a zip while an export process builds it."""
+    job = _study_export_job(request, session, user, from_date, to_date, diagnosis, layout, include_free_text)
+    return ExportResponse(export_jobs(request), job, "the study bundle cannot be exported")
+
+
+@export_router.post("/exports/bulk/jobs", status_code=status.HTTP_202_ACCEPTED)
+def start_study_export(
+    request: Request,
+    session: ExportSessionDep,
+    user: ExportUser,
+    from_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
+    to_date: Annotated[dt.date, Query(le=LAST_EXPORT_DAY)],
+    diagnosis: Annotated[str | None, Query(max_length=200, pattern=NO_NUL_PATTERN)] = None,
+    layout: StudyLayout = "folders",
+    include_free_text: Annotated[bool, Query(description="Keep the free-text diagnosis and notes.")] = False,
+) -> dict[str, Any]:
+    """Start the study export as a job: follow it at `GET /exports/jobs/{id}`, fetch it at …/download."""
+    job = _study_export_job(request, session, user, from_date, to_date, diagnosis, layout, include_free_text)
+    return job.status()
+
+
+def _own_job(request: Request, job_id: str, user: User) -> ExportJob:
+    job = export_jobs(request).get(job_id, user.id)
+    if job is None:
+        raise NotFoundError("export job", job_id)
+    return job
+
+
+@export_router.get("/exports/jobs/{job_id}")
+def export_job_status(
+    job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request, user: ExportUser
+) -> dict[str, Any]:
+    """state (queued | running | done | failed), fraction 0–1, bytes written so far, and why it failed."""
+    return _own_job(request, job_id, user).status()
+
+
+@export_router.get("/exports/jobs/{job_id}/download", response_class=Response)
+def download_export_job(
+    job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], request: Request, user: ExportUser
+) -> Response:
+    """The job's file, streamed from its first byte while the job still runs; 409 if it failed first."""
+    job = _own_job(request, job_id, user)
+    return ExportResponse(export_jobs(request), job, "the export failed")
 
 
 # --- telemetry WebSocket ---------------------------------------------------------------------------

@@ -362,12 +362,15 @@ def test_c3d_events_have_labels_contexts_and_times(c3d_file):
     assert subject.startswith("P-") and event["SUBJECTS"]["value"] == [subject, subject]
 
 
-def test_c3d_refuses_a_log_with_missing_ticks(twin, columns):
+def test_c3d_flags_a_missing_tick_instead_of_refusing_the_log(twin, columns, tmp_path: Path):
+    """Issue 20 defect 11: a lost sample made the C3D export refuse the whole run."""
     gappy = {name: np.delete(values, 100, axis=0) for name, values in columns.items()}
     gappy_log = SessionLog(columns=gappy, events=[], metadata=metadata_for(twin))
-    with pytest.raises(SessionLogError) as refused:
-        export_session(gappy_log, "c3d")
-    assert refused.value.field == "tick[100]"
+    path = tmp_path / "gappy.c3d"
+    path.write_bytes(export_session(gappy_log, "c3d")[0])
+    c3d = ezc3d.c3d(str(path))
+    gap = c3d["data"]["analogs"][0, c3d["parameters"]["ANALOG"]["LABELS"]["value"].index("tick_gap")]
+    assert np.flatnonzero(gap[: len(gappy["tick"])]).tolist() == [100]
 
 
 def test_c3d_refuses_an_unknown_stance_pose(twin, columns):
@@ -469,8 +472,10 @@ def test_clock_and_sample_rate_are_checked(twin, columns):
         SessionLog(columns=dict(columns, time_s=backwards), metadata=metadata_for(twin))
     assert clock.value.field == "time_s[7]"
     with pytest.raises(SessionLogError) as rate:
-        SessionLog(columns=columns, metadata=dict(metadata_for(twin), sample_rate_hz=500.0))
+        SessionLog(columns=columns, metadata=dict(metadata_for(twin), sample_rate_hz=0.0))
     assert rate.value.field == "metadata.sample_rate_hz"
+    # The nominal rate is kept whatever the stamps say (issue 20 defect 11): late ticks are flags, not errors.
+    assert SessionLog(columns=columns, metadata=dict(metadata_for(twin), sample_rate_hz=500.0)).sample_rate_hz == 500.0
     with pytest.raises(SessionLogError) as session:
         SessionLog(columns=columns, metadata={"sample_rate_hz": SAMPLE_RATE_HZ})
     assert session.value.field == "metadata.session_id"
@@ -587,3 +592,41 @@ def test_worker_telemetry_records_export_with_named_channels_and_code_tables(twi
     with pytest.raises(SessionLogError) as refused:
         SessionLog.from_telemetry(records["harness_load_n"], [], metadata_for(twin))
     assert refused.value.field == "telemetry"
+
+
+def test_streamed_exports_hold_one_batch_not_the_run(twin, tmp_path: Path):
+    """Issue 20 Build 7: an export's memory must not grow with the run. The same export of a run four times
+    longer, read in batches from its spool, peaks at about the same Python allocations (tracemalloc; the hard
+    figures, RSS included, are in `ssp-rehab bench exports`)."""
+    import tracemalloc
+
+    from server.exports.formats import write_csv, write_json, write_parquet
+    from server.exports.stream import ForwardSink, LogStream, RecordSpool
+    from server.realtime.telemetry import TELEMETRY_DTYPE
+
+    class Discard(io.RawIOBase):
+        def writable(self) -> bool:
+            return True
+
+        def write(self, data) -> int:
+            return len(memoryview(data))
+
+    def peak_bytes(sample_count: int) -> int:
+        spool = RecordSpool(tmp_path / f"{sample_count}.records")
+        for start in range(0, sample_count, 500):
+            records = np.zeros(500, dtype=TELEMETRY_DTYPE)
+            records["tick"] = np.arange(start, start + 500)
+            records["time_s"] = records["tick"] / SAMPLE_RATE_HZ
+            spool.append(records)
+        log = LogStream(spool.mapped(), synthetic_events(), metadata_for(twin), batch_samples=500)
+        tracemalloc.start()
+        try:
+            for writer in (write_csv, write_parquet, write_json):
+                writer(log, ForwardSink(Discard()))
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+            spool.remove()
+
+    short, long = peak_bytes(2_000), peak_bytes(8_000)
+    assert long < 1.5 * short, (short, long)

@@ -5,7 +5,10 @@ data dictionary, and the nominal sample rate in the metadata whatever the measur
 from __future__ import annotations
 
 import datetime as dt
+import io
 import json
+import time
+import zipfile
 from pathlib import Path
 
 import duckdb
@@ -15,6 +18,8 @@ import pytest
 from core.robot import TwinRobot, default_twin
 from server.exports import SessionLog, pseudonymise, session_metadata
 from server.exports.dataset import DATA_DICTIONARY_FILE, write_parquet_dataset
+from server.realtime.telemetry import TELEMETRY_DTYPE
+from tests.server.conftest import wait_until
 from tests.server.test_exports import PATIENT as EXPORT_PATIENT
 from tests.server.test_exports import SALT
 
@@ -175,9 +180,6 @@ def test_the_bulk_export_serves_the_parquet_dataset_without_free_text(
     params = {"from_date": today, "to_date": today, "layout": "parquet_dataset"}
     response = robot_client.get("/api/v1/exports/bulk", params=params, headers=seed.headers())
     assert response.status_code == 200, response.text
-    import io
-    import zipfile
-
     with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
         archive.extractall(tmp_path / "study")
         assert not any(API_PATIENT["name"] in archive.read(n).decode("latin-1") for n in archive.namelist())
@@ -220,3 +222,93 @@ def test_a_loaded_workers_log_exports_to_c3d_at_the_nominal_rate(twin: TwinRobot
     c3d = ezc3d.c3d(str(path))
     assert c3d["parameters"]["ANALOG"]["RATE"]["value"][0] == pytest.approx(1000.0)
     assert "skipped_ticks" in c3d["parameters"]["ANALOG"]["LABELS"]["value"]
+
+
+def record_late_ticks(worker, samples: int) -> None:
+    """Telemetry of a busy machine, as issue 20 defect 11 recorded it: every tick ~64 µs late, so `time_s`
+    reads 939.459 Hz for a 1 kHz run, five ticks late past the worker's 500 µs, a stall of two skipped
+    periods before sample 100 and one lost sample (tick 150 missing)."""
+    with worker._lock:
+        records = np.zeros(samples + 1, dtype=TELEMETRY_DTYPE)
+        records["tick"] = np.arange(worker.tick, worker.tick + samples + 1)
+        records["time_s"] = 5.0 + np.arange(samples + 1) / 939.459
+        records["utc_s"] = time.time()
+        records["plate_force_z_n"] = 320.0
+        records["lateness_us"] = 64.0
+        records["lateness_us"][40:45] = 900.0
+        records["skipped_ticks"][100] = 2
+        worker.tick += samples + 1
+        worker._telemetry.append(np.delete(records, 150))
+
+
+def test_a_run_with_late_and_skipped_ticks_exports_in_every_format_with_the_ticks_flagged(
+    robot_client, seed, fake_worker, tmp_path: Path
+) -> None:
+    """Issue 20 defect 11: such a run answered 409 "time_s is sampled at 939.459 Hz (tolerance 2 %)" for
+    CSV, Parquet, JSON and C3D. The rate is the nominal one; late and skipped ticks are flagged per sample."""
+    import ezc3d
+    import pyarrow.parquet as pq
+
+    from tests.server.conftest import booked_session
+    from tests.server.test_api_sessions import start
+
+    booked = booked_session(robot_client, seed.headers())
+    run = start(robot_client, seed, booked)
+    record_late_ticks(fake_worker, 300)
+    fake_worker.emit_event("controlled_stop", reason="completed")
+    run_url = f"/api/v1/runs/{run['id']}"
+    wait_until(lambda: robot_client.get(run_url, headers=seed.headers()).json()["sample_count"] == 300)
+    url = f"/api/v1/sessions/{booked.session_id}/export"
+    bodies = {}
+    for fmt in ("csv", "parquet", "json", "c3d"):
+        response = robot_client.get(url, params={"format": fmt}, headers=seed.headers())
+        assert response.status_code == 200, (fmt, response.text)
+        bodies[fmt] = response.content
+    table = pq.read_table(io.BytesIO(bodies["parquet"]))
+    late, gap = table.column("late").to_numpy(), table.column("tick_gap").to_numpy()
+    assert np.flatnonzero(late).tolist() == [40, 41, 42, 43, 44]
+    assert {int(i): int(gap[i]) for i in np.flatnonzero(gap)} == {100: 2, 150: 1}
+    sidecar = json.loads(table.schema.metadata[b"ssp_rehab.metadata"])
+    assert sidecar["sample_rate_hz"] == 1000.0
+    with zipfile.ZipFile(io.BytesIO(bodies["csv"])) as archive:
+        header = archive.read("telemetry.csv").decode().splitlines()[0]
+    assert '"late"' in header and '"tick_gap"' in header
+    document = json.loads(bodies["json"])
+    assert sum(document["columns"]["tick_gap"]) == 3
+    path = tmp_path / "run.c3d"
+    path.write_bytes(bodies["c3d"])
+    c3d = ezc3d.c3d(str(path))
+    assert c3d["parameters"]["ANALOG"]["RATE"]["value"][0] == pytest.approx(1000.0)
+    labels = c3d["parameters"]["ANALOG"]["LABELS"]["value"]
+    assert c3d["data"]["analogs"][0, labels.index("tick_gap"), 150] == 1.0
+    assert c3d["data"]["analogs"][0, labels.index("late"), 42] == 1.0
+
+
+def test_the_bulk_export_streams_from_an_export_process_while_health_answers(robot_client, seed, fake_worker) -> None:
+    """Issue 20 defect 10: `GET /exports/bulk` built everything before its first byte (over 60 s) inside the
+    web process, whose /health then took up to 5.8 s. Now its first bytes arrive while the export process
+    is still building the zip, and /health answers meanwhile."""
+    from tests.server.test_api_sessions import recorded_run
+
+    _, run = recorded_run(robot_client, seed, fake_worker)
+    fake_worker.produce(60_000)  # a minute at 1 kHz: the bulk default (every format) takes seconds to build
+    run_url = f"/api/v1/runs/{run['id']}"
+    wait_until(lambda: robot_client.get(run_url, headers=seed.headers()).json()["sample_count"] == 60_300, 60.0)
+    today = str(dt.datetime.now(dt.UTC).date())
+    bulk = robot_client.stream(
+        "GET", "/api/v1/exports/bulk", params={"from_date": today, "to_date": today}, headers=seed.headers()
+    )
+    with bulk as response:
+        assert response.status_code == 200
+        first = next(response.iter_bytes())
+        assert first[:4] == b"PK\x03\x04"  # a zip's first local header
+        job_url = f"/api/v1/exports/jobs/{response.headers['x-export-job']}"
+        assert robot_client.get(job_url, headers=seed.headers()).json()["state"] == "running"
+        for _ in range(5):
+            started = time.monotonic()
+            assert robot_client.get("/api/v1/health").status_code == 200
+            assert time.monotonic() - started < 2.0  # generous: the web process does no export work
+        progress = robot_client.get(job_url, headers=seed.headers()).json()
+        assert progress["state"] == "running" and 0.0 <= progress["fraction"] < 1.0 and progress["bytes"] > 0
+    other = robot_client.get(job_url, headers=seed.headers("admin"))
+    assert other.status_code == 404  # a job is its owner's only
