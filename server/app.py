@@ -184,6 +184,8 @@ def _api_router() -> APIRouter:
             "robot_connected": daemon["state"] == "ready",
             "robot": daemon,
             "database": {"writable": refusal is None, "reason": refusal},
+            # The worker's scheduling: SCHED_FIFO and a CPU of its own granted, or what to configure (issue 20).
+            "realtime": getattr(robot, "realtime", None),
             "web_pid": os.getpid(),  # which of the console's web processes (`serve --workers N`) answered
             "clinic_timezone": request.app.state.settings.timezone,  # the console shows every time in it
         }

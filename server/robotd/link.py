@@ -74,6 +74,7 @@ class DaemonLink:
         self._status: StatusBlock | None = None
         self._control: ControlBlock | None = None
         self._state: Seqlock | None = None
+        self.realtime: dict[str, Any] | None = None  # the worker's scheduling, as the daemon reports it
         self._events: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_EVENTS_KEPT)
         self._closed = threading.Event()
         self._connected = threading.Event()
@@ -263,6 +264,8 @@ class DaemonLink:
 
     def _attach(self, names: dict[str, Any]) -> None:
         with self._attach_lock:
+            if names.get("realtime") is not None:
+                self.realtime = names["realtime"]
             if names.get("status_name") and (self._status is None or self._status.name != names["status_name"]):
                 self._status = StatusBlock(names["status_name"])
             if names.get("control_name") and (self._control is None or self._control.name != names["control_name"]):

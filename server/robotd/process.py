@@ -32,6 +32,7 @@ from typing import Any
 
 from server.db import Database, create_database_engine, upgrade_database
 from server.realtime.client import WorkerClient
+from server.realtime.scheduling import RealtimeReport, parse_cpu_request
 from server.robotd.daemon import RobotDaemon, refusal_to_dict
 from server.robotd.planner import Planner
 from server.robotd.recovery import recover_open_runs
@@ -154,6 +155,25 @@ class RobotDaemonProcess:
         if self.daemon is not None:
             self.daemon.worker_lost(reason)
 
+    def realtime(self) -> dict[str, Any] | None:
+        """The worker's scheduling as /health shows it (None until the worker runs)."""
+        worker = self.worker
+        setup = getattr(worker, "realtime_setup", None) if worker is not None else None
+        return RealtimeReport.from_setup(setup).to_dict() if setup else None
+
+    def _announce_realtime(self) -> None:
+        report = self.realtime()
+        if report is None:
+            return
+        if report["granted"]:
+            log.info("real-time worker: SCHED_FIFO %s on CPU %s of its own", report["priority"], report["cpu"])
+        else:
+            log.warning(
+                "real-time scheduling NOT granted (%s): sessions may stop on late ticks on a busy computer. %s",
+                "; ".join(report["refusals"]),
+                report["how_to_fix"],
+            )
+
     # --- the socket -------------------------------------------------------------------------------
 
     def hello(self) -> dict[str, Any]:
@@ -164,6 +184,7 @@ class RobotDaemonProcess:
             "status_name": self.status.name if self.status is not None else None,
             "control_name": worker.control.name if worker is not None else None,
             "state_name": worker.state.name if worker is not None else None,
+            "realtime": self.realtime(),
         }
 
     def push(self, message: dict[str, Any]) -> None:
@@ -251,9 +272,11 @@ class RobotDaemonProcess:
                 str(settings.robot_file) if settings.robot_file else None,
                 settings.backend,
                 settings.control_rate_hz,
+                cpu=parse_cpu_request(settings.realtime_cpu),
                 hal_options=hal_options(settings),
             )
             self.worker.start(timeout_s=WORKER_START_TIMEOUT_S)
+            self._announce_realtime()
             worker_blocks = (self.worker.control, self.worker.state, self.worker.telemetry, self.worker.events)
             names = [status.name, *(block.name for block in worker_blocks)]
             self.paths.shared_memory.write_text("\n".join(names) + "\n")

@@ -67,6 +67,7 @@ DAEMON_SETTINGS = (
     "can_simulated_drives",
     "drive_communication_timeout_s",
     "log_flush_interval_s",
+    "realtime_cpu",
 )
 
 
