@@ -33,6 +33,8 @@ from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
+from server.prescriptions.preview import PreviewProcess
+from server.realtime.scheduling import lower_priority
 from server.robotd.daemon import RobotDaemon
 from server.robotd.link import LocalLink
 from server.robotd.process import daemon_running
@@ -251,6 +253,11 @@ def create_app(
             robot.open()
         app.state.robot = robot
         app.state.viz = await asyncio.to_thread(start_view, settings, twin, robot) if started_here else None
+        if started_here:
+            # The web process yields to its robot daemon on a busy computer. Nice is per thread: the event
+            # loop's thread, and the request threads it starts from now on; the robot link's threads and any
+            # daemon they start were started before, at the normal priority (server.realtime.scheduling).
+            lower_priority("the web process")
         fanout_task = None
         if robot is not None:
             app.state.fanout = TelemetryFanout(robot, settings.telemetry_rate_hz)
@@ -266,6 +273,7 @@ def create_app(
                     await fanout_task
             if robot is not None:
                 await asyncio.to_thread(robot.close)  # a daemon keeps running; an in-process one stops
+            app.state.preview_process.close()
             if owned_engine is not None:
                 owned_engine.dispose()
 
@@ -280,6 +288,7 @@ def create_app(
     )
     app.state.settings = settings
     app.state.twin = twin
+    app.state.preview_process = PreviewProcess()  # previews never run in a web process (issue 20)
     app.state.pseudonym_key = hmac.new(secret_key, b"patient pseudonyms", hashlib.sha256).digest()
     app.state.auth = AuthState(
         signer=TokenSigner(secret_key),
