@@ -45,6 +45,7 @@ ESTOP_CONFIRM_TIMEOUT_S = 0.25  # the worker checks the flag every tick (1 ms); 
 COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may take minutes
 MAX_EVENTS_KEPT = 256
 RESPAWN_PERIOD_S = 5.0
+CONSOLE_ID_ENVIRONMENT = "SSP_REHAB_CONSOLE_ID"
 ANOTHER_CONSOLES_DAEMON = "the robot daemon is starting (started by another web process of this robot)"
 
 
@@ -237,7 +238,7 @@ class DaemonLink:
         connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             connection.connect(str(self.paths.socket))
-            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid()}
+            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid(), "console": console_id()}
             connection.sendall((json.dumps(hello_request) + "\n").encode())
             reader = connection.makefile("rb")
             hello = json.loads(reader.readline() or b"null")
@@ -352,6 +353,12 @@ class LocalLink:
 
     def close(self) -> None:
         self.daemon.shutdown()
+
+
+def console_id() -> str:
+    """The console this web process serves: `serve --workers N` gives its processes one id
+    (`SSP_REHAB_CONSOLE_ID`), so that they share the session-control lease; otherwise the process's own."""
+    return os.environ.get(CONSOLE_ID_ENVIRONMENT) or f"process-{os.getpid()}"
 
 
 def _pid_in(paths: RobotPaths) -> int | None:

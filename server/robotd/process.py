@@ -104,6 +104,7 @@ class RobotDaemonProcess:
         self.daemon: RobotDaemon | None = None
         self.links: dict[str, socket.socket] = {}
         self.link_pids: dict[str, int | None] = {}
+        self.link_consoles: dict[str, str | None] = {}  # the console (`serve`) each link's web process serves
         self._links_lock = threading.Lock()
         self._stop = threading.Event()
         self._worker_lost = False
@@ -222,14 +223,17 @@ class RobotDaemonProcess:
             return daemon.metrics_text()
         raise ValueError(f"cmd = {command!r}: unknown")
 
-    def serve_link(self, connection: socket.socket, reader: Any, web_pid: int | None) -> None:
+    def serve_link(
+        self, connection: socket.socket, reader: Any, web_pid: int | None, console: str | None = None
+    ) -> None:
         prioritise_liveness_thread("a console link")  # its beats decide whether the console is alive
         link_id = uuid.uuid4().hex
         with self._links_lock:
             self.links[link_id] = connection
             self.link_pids[link_id] = web_pid
+            self.link_consoles[link_id] = console
         if self.daemon is not None:
-            self.daemon.link_opened(link_id, web_pid)
+            self.daemon.link_opened(link_id, web_pid, console)
         try:
             _send(connection, {"ok": True, "result": {**self.hello(), "link_id": link_id}})
             for line in reader:
@@ -241,6 +245,7 @@ class RobotDaemonProcess:
             with self._links_lock:
                 self.links.pop(link_id, None)
                 self.link_pids.pop(link_id, None)
+                self.link_consoles.pop(link_id, None)
             if self.daemon is not None:
                 self.daemon.link_closed(link_id)
 
@@ -293,7 +298,7 @@ class RobotDaemonProcess:
             self.daemon.listeners.append(lambda events: self.push({"push": "events", "events": events}))
             with self._links_lock:
                 for link_id, web_pid in self.link_pids.items():
-                    self.daemon.link_opened(link_id, web_pid)
+                    self.daemon.link_opened(link_id, web_pid, self.link_consoles.get(link_id))
             self.daemon.start()
             self.set_state(DaemonState.READY, f"backend {settings.backend} at {settings.control_rate_hz} Hz")
             self.push({"push": "ready", **self.hello()})
@@ -353,7 +358,7 @@ def _serve_socket(owner: RobotDaemonProcess) -> socketserver.UnixStreamServer:
             except ValueError:
                 return
             if request.get("cmd") == "hello" and request.get("persistent"):
-                owner.serve_link(self.connection, self.rfile, request.get("web_pid"))
+                owner.serve_link(self.connection, self.rfile, request.get("web_pid"), request.get("console"))
                 return
             try:
                 reply = {"ok": True, "result": owner.handle(request)}
