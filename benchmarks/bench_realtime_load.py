@@ -79,15 +79,51 @@ def _session_figures(client: _TappedClient, seconds: float) -> dict[str, Any]:
     }
 
 
+class Load:
+    """Two busy processes per CPU and HTTP requests on loopback, for the length of a measurement."""
+
+    def __init__(self, seconds: float) -> None:
+        port = _free_port()
+        self.busy = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(HOGS_PER_CPU * (os.cpu_count() or 1))]
+        self.server = subprocess.Popen([sys.executable, "-c", HTTP_SERVER, str(port)], cwd=tempfile.gettempdir())
+        self.clients = [
+            subprocess.Popen(
+                [sys.executable, "-c", HTTP_CLIENT, f"http://127.0.0.1:{port}/", str(seconds)],
+                stdout=subprocess.PIPE,
+                text=True,
+            )
+            for _ in range(HTTP_CLIENTS)
+        ]
+        self.began = time.monotonic()
+
+    def stop(self) -> dict[str, Any]:
+        load_average = [round(v, 2) for v in os.getloadavg()]
+        elapsed = time.monotonic() - self.began
+        for process in [*self.busy, self.server]:
+            process.terminate()
+        counts = [client.communicate(timeout=60)[0].strip() for client in self.clients]
+        for process in [*self.busy, self.server]:
+            process.wait(30)
+        requests = sum(int(count) for count in counts if count.isdigit())
+        return {
+            "load_average": load_average,
+            "busy_processes": len(self.busy),
+            "http_requests_per_s": round(requests / elapsed, 1),
+        }
+
+
 def scenario(robots: int, seconds: float, fifo: bool) -> dict[str, Any]:
-    """Run in its own process: `robots` workers, each playing a session, measured for `seconds`."""
+    """Run in its own process: `robots` workers, each playing a session, measured for `seconds` under load."""
     clients = [_TappedClient(None, "kinematic", 1000, fifo_priority=80 if fifo else None) for _ in range(robots)]
     results: list[dict[str, Any]] = [{} for _ in clients]
+    load: Load | None = None
+    load_figures: dict[str, Any] = {}
     try:
         for client in clients:
             client.start(timeout_s=600.0)
         for client in clients:
             _start_session(client, seconds + 30.0)
+        load = Load(seconds)
 
         def measure(index: int) -> None:
             results[index] = _session_figures(clients[index], seconds)
@@ -98,9 +134,11 @@ def scenario(robots: int, seconds: float, fifo: bool) -> dict[str, Any]:
         for thread in threads:
             thread.join()
     finally:
+        if load is not None:
+            load_figures = load.stop()
         for client in clients:
             client.shutdown()
-    return {"workers": results}
+    return {"workers": results, **load_figures}
 
 
 def _free_port() -> int:
@@ -112,52 +150,24 @@ def _free_port() -> int:
 
 
 def _run_scenario(name: str, seconds: float, claims: Path) -> dict[str, Any]:
-    """One scenario in a child process under the load; its figures, the load average and the HTTP rate."""
+    """One scenario in a child process (it starts the load once its sessions run); its figures."""
     robots = 2 if name == "two_robots" else 1
-    command = [sys.executable, "-m", "benchmarks.bench_realtime_load", str(robots), str(seconds)]
-    command.append("fifo")  # always asked for: in `refused` the OS refuses it
+    command = [sys.executable, "-m", "benchmarks.bench_realtime_load", str(robots), str(seconds), "fifo"]
     environment = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "SSP_REHAB_REALTIME_LOCK_DIR": str(claims)}
     note = None
-    if name == "refused":
+    if name == "refused":  # SCHED_FIFO is asked for, and the OS refuses it
         if os.geteuid() == 0 and shutil.which("setpriv"):
             command = ["setpriv", "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", *command]
             environment["SSP_REHAB_BENCH_RTPRIO_LIMIT"] = "0"
         else:
             command[-1] = "no-fifo"
             note = "not root or no setpriv: SCHED_FIFO not requested instead of refused"
-    port = _free_port()
-    processes = [subprocess.Popen([sys.executable, "-c", HOG]) for _ in range(HOGS_PER_CPU * (os.cpu_count() or 1))]
-    processes.append(subprocess.Popen([sys.executable, "-c", HTTP_SERVER, str(port)], cwd=tempfile.gettempdir()))
-    http_budget_s = seconds + 120.0
-    clients = [
-        subprocess.Popen(
-            [sys.executable, "-c", HTTP_CLIENT, f"http://127.0.0.1:{port}/", str(http_budget_s)],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
-        for _ in range(HTTP_CLIENTS)
-    ]
-    began = time.monotonic()
-    try:
-        finished = subprocess.run(
-            command, cwd=REPO_ROOT, env=environment, capture_output=True, text=True, timeout=seconds + 900
-        )
-        load_average = [round(v, 2) for v in os.getloadavg()]
-    finally:
-        for process in [*processes, *clients]:
-            process.terminate()
-        for process in [*processes, *clients]:
-            process.wait(30)
-    elapsed = time.monotonic() - began
-    if finished.returncode != 0:
-        return {"error": finished.stderr[-2000:], "load_average": load_average}
-    figures: dict[str, Any] = json.loads(finished.stdout.strip().splitlines()[-1])
-    requests = sum(int(out) for out in (c.communicate()[0].strip() for c in clients) if out.isdigit())
-    figures.update(
-        load_average=load_average,
-        busy_processes=HOGS_PER_CPU * (os.cpu_count() or 1),
-        http_requests_per_s=round(requests / elapsed, 1) if requests else None,
+    finished = subprocess.run(
+        command, cwd=REPO_ROOT, env=environment, capture_output=True, text=True, timeout=seconds + 1200
     )
+    if finished.returncode != 0:
+        return {"error": finished.stderr[-2000:]}
+    figures: dict[str, Any] = json.loads(finished.stdout.strip().splitlines()[-1])
     if note:
         figures["note"] = note
     return figures

@@ -117,11 +117,11 @@ class Settings(BaseSettings):
         "CPU number (docs/realtime.md).",
     )
     web_healthcheck_timeout_s: int = Field(
-        default=60,
+        default=300,
         ge=5,
         le=3600,
         description="`serve --workers N`: how long uvicorn waits for a web process to answer its health check "
-        "before it kills it (uvicorn's own default, 5 s, kills them on a loaded machine).",
+        "before it kills it (uvicorn's 5 s, and 60 s, killed starting ones at load 14-23 on 2 cores).",
     )
 
     @field_validator("realtime_cpu")
