@@ -71,6 +71,7 @@ def tick_compute(ticks: int) -> dict[str, Any]:
             durations[index] = time.perf_counter_ns() - started
     finally:
         gc.enable()
+        setup.release()
         os.sched_setaffinity(0, affinity)
         if setup.fifo_priority is not None:
             os.sched_setscheduler(0, policy, priority)

@@ -38,6 +38,8 @@ from server.db import Database, create_database_engine, load_models, refused_wri
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.exports.jobs import ExportJobs
 from server.observability.health import DatabaseProbe
+from server.prescriptions.preview import PreviewProcess
+from server.realtime.scheduling import lower_priority
 from server.robotd.daemon import RobotDaemon
 from server.robotd.estop_listener import page_stop_url
 from server.robotd.link import DaemonLink, LocalLink
@@ -205,6 +207,8 @@ def _api_router() -> APIRouter:
             "robot_connected": daemon["state"] == "ready",
             "robot": daemon,
             "database": {"reachable": unreachable is None, "writable": refusal is None, "reason": refusal},
+            # The worker's scheduling: SCHED_FIFO and a CPU of its own granted, or what to configure (issue 20).
+            "realtime": getattr(robot, "realtime", None),
             "web_pid": os.getpid(),  # which of the console's web processes (`serve --workers N`) answered
             "clinic_timezone": request.app.state.settings.timezone,  # the console shows every time in it
             # Where the page sends its emergency stop (the robot's stop listener); /api/v1/estop if it fails.
@@ -276,6 +280,11 @@ def create_app(
             robot.open()
         app.state.robot = robot
         app.state.viz = await asyncio.to_thread(start_view, settings, twin, robot) if started_here else None
+        if started_here:
+            # The web process yields to its robot daemon on a busy computer. Nice is per thread: the event
+            # loop's thread, and the request threads it starts from now on; the robot link's threads and any
+            # daemon they start were started before, at the normal priority (server.realtime.scheduling).
+            lower_priority("the web process")
         fanout_task = None
         if robot is not None:
             app.state.fanout = TelemetryFanout(robot, settings.telemetry_rate_hz)
@@ -292,6 +301,7 @@ def create_app(
             if robot is not None:
                 await asyncio.to_thread(robot.close)  # a daemon keeps running; an in-process one stops
             await asyncio.to_thread(app.state.export_jobs.close)
+            app.state.preview_process.close()
             if owned_engine is not None:
                 owned_engine.dispose()
 
@@ -306,6 +316,7 @@ def create_app(
     )
     app.state.settings = settings
     app.state.twin = twin
+    app.state.preview_process = PreviewProcess()  # previews never run in a web process (issue 20)
     app.state.pseudonym_key = hmac.new(secret_key, b"patient pseudonyms", hashlib.sha256).digest()
     app.state.auth = AuthState(
         signer=TokenSigner(secret_key),

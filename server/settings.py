@@ -15,6 +15,7 @@ from zoneinfo import ZoneInfo
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from server.realtime.scheduling import parse_cpu_request
 from server.scheduling.clinic_time import is_zone_name, machine_zone_name
 
 Backend = Literal["sim", "kinematic", "canopen"]
@@ -133,6 +134,23 @@ class Settings(BaseSettings):
     frontend_dir: Path | None = Field(
         default=None, description="Static clinician app; default: frontend_static/ if present."
     )
+    realtime_cpu: str = Field(
+        default="auto",
+        description="The real-time worker's CPU: auto (a free one, claimed machine-wide, highest first), none, or a "
+        "CPU number (docs/realtime.md).",
+    )
+    web_healthcheck_timeout_s: int = Field(
+        default=300,
+        ge=5,
+        le=3600,
+        description="`serve --workers N`: how long uvicorn waits for a web process to answer its health check "
+        "before it kills it (uvicorn's 5 s, and 60 s, killed starting ones at load 14-23 on 2 cores).",
+    )
+
+    @field_validator("realtime_cpu")
+    @classmethod
+    def _realtime_cpu(cls, value: str) -> str:
+        return str(parse_cpu_request(value))
 
     @field_validator("viz_host")
     @classmethod

@@ -32,9 +32,11 @@ def _prepare_web_processes(settings: Any, options: dict[str, Any]) -> str:
     (two processes generating it at once would sign with different keys). Returns the factory's import
     string. The robot daemon is not started here: each process attaches, and its lock admits one daemon."""
     import os
+    import uuid
 
     from core.robot import load_twin
     from server.db import create_database_engine, upgrade_database
+    from server.robotd.link import CONSOLE_ID_ENVIRONMENT
 
     for name, value in options.items():
         if value is None:
@@ -44,6 +46,8 @@ def _prepare_web_processes(settings: Any, options: dict[str, Any]) -> str:
         elif isinstance(value, bool):
             value = "true" if value else "false"
         os.environ[f"SSP_REHAB_{name.upper()}"] = str(value)
+    # One console: its processes share the robot's session-control lease (server.robotd.link.console_id).
+    os.environ.setdefault(CONSOLE_ID_ENVIRONMENT, f"serve-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     if settings.robot_file:
         load_twin(settings.robot_file)  # a bad description fails here, once, not in every process
     settings.resolved_secret_key()
@@ -147,6 +151,8 @@ def register(app: typer.Typer) -> None:
             log_config=None,
             workers=workers,
             factory=workers > 1,
+            # uvicorn's default (5 s) killed web processes that started on a loaded machine (issue 20).
+            timeout_worker_healthcheck=settings.web_healthcheck_timeout_s,
         )
 
     @app.command("warm-up")

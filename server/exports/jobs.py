@@ -56,8 +56,8 @@ _PROCESSES.set_forkserver_preload([worker.__name__])
 
 
 def start_export_process() -> tuple[multiprocessing.process.BaseProcess, Connection]:
-    """The one place an export process starts (named `ssp-rehab-export`); returns it and the pipe to feed it.
-    (Scheduling policy or priority for export processes belongs here.)"""
+    """The one place an export process starts (named `ssp-rehab-export`, niced by its body); returns it and
+    the pipe to feed it."""
     receiver, sender = _PROCESSES.Pipe(duplex=False)
     process = _PROCESSES.Process(
         target=worker.run_export_process, args=(receiver,), name=EXPORT_PROCESS_NAME, daemon=True

@@ -153,7 +153,11 @@ def export(job: dict[str, Any], runs: queue.Queue[Any], progress: Progress, forw
 
 
 def run_export_process(channel: Connection) -> None:
-    """The export process's body: read the job, export it, say how it went in its progress file."""
+    """The export process's body: read the job, export it, say how it went in its progress file. Below the
+    console's priority: an export never takes the CPU from the robot daemon or the stop listener."""
+    from server.realtime.scheduling import lower_priority
+
+    lower_priority("the export process")
     sys.exit(export_job(channel))
 
 

@@ -10,10 +10,17 @@ independent check), then reports, decimated for plotting:
   (Formula 14), and the cued and delivered angular velocity through the canal model (Formula 15);
 - every slider's position against its stroke;
 and the check's verdict: the peak use of every limit, or the first limit it would break.
+
+The work runs in a niced planning process of its own (`PreviewProcess`), never in the web process: a
+preview holds the GIL for seconds in compiled kernels, and it starved the web process's beat to its
+robot daemon, which ended a running session `interrupted` (issue 20, defect 8).
 """
 
 from __future__ import annotations
 
+import concurrent.futures
+import multiprocessing
+import threading
 from typing import Annotated, Any
 
 import numpy as np
@@ -34,6 +41,7 @@ from server.db import SessionDep
 from server.errors import InvalidFieldError
 from server.patients.service import read_patient
 from server.prescriptions.schemas import EXAMPLE_SEGMENT
+from server.realtime.scheduling import lower_priority
 
 router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
 
@@ -125,6 +133,55 @@ def prescription_preview(
     }
 
 
+def _preview_or_refusal(
+    prescription: PrescriptionBody, twin: TwinRobot, control_rate_hz: int, patient: dict[str, Any] | None
+) -> tuple[str, Any]:
+    """In the preview process: ("ok", preview) or ("invalid", (field, value, limit)), which pickles back."""
+    try:
+        return "ok", prescription_preview(prescription, twin, control_rate_hz=control_rate_hz, patient=patient)
+    except InvalidFieldError as error:
+        return "invalid", (error.field, error.value, error.limit)
+
+
+class PreviewProcess:
+    """One niced process per web process that computes previews one at a time (started on first use)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+
+    def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = concurrent.futures.ProcessPoolExecutor(
+                    max_workers=1,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=lower_priority,
+                    initargs=("the preview process",),
+                )
+            return self._pool
+
+    def preview(
+        self, prescription: PrescriptionBody, twin: TwinRobot, *, control_rate_hz: int, patient: dict[str, Any] | None
+    ) -> dict[str, Any]:
+        try:
+            future = self._executor().submit(_preview_or_refusal, prescription, twin, control_rate_hz, patient)
+            status, result = future.result()
+        except concurrent.futures.process.BrokenProcessPool:
+            with self._lock:
+                self._pool = None  # the next preview starts a new process
+            raise
+        if status == "invalid":
+            raise InvalidFieldError(*result)
+        return dict(result)
+
+    def close(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+
 @router.post("/preview", responses={422: {"description": "A field is invalid; the answer names it"}})
 def preview_prescription(
     data: PreviewRequest, request: Request, session: SessionDep, user: CurrentUser
@@ -134,9 +191,15 @@ def preview_prescription(
     if data.patient_id is not None:
         record = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
         patient = {"body_mass_kg": record.body_mass_kg, "height_m": record.height_m}
-    return prescription_preview(
+    return preview_process(request).preview(
         data,
         request.app.state.twin,
         control_rate_hz=request.app.state.settings.control_rate_hz,
         patient=patient,
     )
+
+
+def preview_process(request: Request) -> PreviewProcess:
+    """The app's preview process (`create_app` makes it; shut down with the app)."""
+    process: PreviewProcess = request.app.state.preview_process
+    return process

@@ -30,7 +30,7 @@ from server.realtime.loop import validate_control_rate
 from server.realtime.shm import ControlBlock, Seqlock, SharedRing
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict
-from server.realtime.worker import WorkerConfig, worker_entry
+from server.realtime.worker import WORKER_FIFO_PRIORITY, WorkerConfig, worker_entry
 
 HEARTBEAT_SWITCH_INTERVAL_S = 0.001
 HEARTBEAT_PERIOD_S = 0.02  # five heartbeats per 100 ms watchdog window
@@ -58,7 +58,8 @@ class WorkerClient:
         control_rate_hz: int = DEFAULT_CONTROL_RATE_HZ,
         *,
         supervisor_config: SupervisorConfig | None = None,
-        cpu: int | None = None,
+        cpu: int | str | None = "auto",
+        fifo_priority: int | None = WORKER_FIFO_PRIORITY,
         hal_options: dict[str, Any] | None = None,
         heartbeat_period_s: float = HEARTBEAT_PERIOD_S,
     ) -> None:
@@ -69,6 +70,8 @@ class WorkerClient:
         self.control_rate_hz = validate_control_rate(control_rate_hz)
         self.supervisor_config = supervisor_config or SupervisorConfig()
         self.cpu = cpu
+        self.fifo_priority = fifo_priority
+        self.realtime_setup: dict[str, Any] = {}  # the worker's CPU, SCHED_FIFO priority and refusals
         self.hal_options = hal_options or {}
         self.heartbeat_period_s = heartbeat_period_s
         self.process: multiprocessing.process.BaseProcess | None = None
@@ -104,6 +107,7 @@ class WorkerClient:
             events_name=self.events.name,
             events_capacity=EVENTS_CAPACITY,
             cpu=self.cpu,
+            fifo_priority=self.fifo_priority,
             hal_options=self.hal_options,
         )
         self.process = context.Process(
@@ -136,6 +140,7 @@ class WorkerClient:
                 self.shutdown(timeout_s=5.0)  # frees the shared memory and the pipes
                 raise WorkerError(failure)
             time.sleep(0.01)
+        self.realtime_setup = self._send("realtime_setup")
 
     @property
     def worker_pid(self) -> int:

@@ -2,8 +2,9 @@
 
 Deadlines are k·period after the start, never "now + period", so lateness does not accumulate. The
 thread sleeps until `spin_ns` before the deadline (the kernel's wake-up jitter is tens of µs) and spins
-the rest. `configure_realtime` asks for CPU affinity, SCHED_FIFO and a 1 µs timer slack, and reports
-what the system refused instead of failing: the loop still runs, only with more jitter.
+the rest. `configure_realtime` claims a CPU of its own (server.realtime.scheduling), asks for
+SCHED_FIFO and a 1 µs timer slack, and reports what the system refused instead of failing: the loop
+still runs, only with more jitter.
 """
 
 from __future__ import annotations
@@ -13,8 +14,10 @@ import gc
 import os
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 from core.errors import InvalidValueError
+from server.realtime.scheduling import CpuClaim, claim_cpu
 
 CONTROL_RATE_RANGE_HZ = (250, 2000)
 LATE_THRESHOLD_NS = 500_000  # a tick that starts more than 500 µs after its deadline counts as late
@@ -77,23 +80,39 @@ class RealtimeSetup:
     timer_slack_ns: int | None = None
     gc_frozen: bool = False
     refusals: list[str] = field(default_factory=list)
+    claim: CpuClaim | None = None  # held for the process's life: another robot's worker never takes this CPU
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"cpu": self.cpu, "fifo_priority": self.fifo_priority, "refusals": list(self.refusals)}
+
+    def release(self) -> None:
+        if self.claim is not None:
+            self.claim.release()
 
 
-def configure_realtime(cpu: int | None, fifo_priority: int = 80) -> RealtimeSetup:
-    """Pin to `cpu` (default: the last allowed one), ask for SCHED_FIFO, shrink the timer slack."""
+def configure_realtime(cpu: int | str | None = "auto", fifo_priority: int | None = 80) -> RealtimeSetup:
+    """Claim and pin a CPU no other worker on this computer holds (`server.realtime.scheduling`; `cpu`:
+    `auto`, `none` or a number), ask for SCHED_FIFO (`fifo_priority` None: do not), shrink the timer slack."""
     setup = RealtimeSetup()
-    try:
-        allowed = sorted(os.sched_getaffinity(0))
-        chosen = allowed[-1] if cpu is None else cpu
-        os.sched_setaffinity(0, {chosen})
-        setup.cpu = chosen
-    except (OSError, AttributeError) as error:
-        setup.refusals.append(f"CPU affinity refused: {error}")
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
-        setup.fifo_priority = fifo_priority
-    except (OSError, AttributeError) as error:
-        setup.refusals.append(f"SCHED_FIFO priority {fifo_priority} refused ({error}); running SCHED_OTHER")
+    claim = claim_cpu("auto" if cpu is None else cpu)
+    setup.claim = claim
+    if claim.refusal is not None:
+        setup.refusals.append(f"CPU not pinned: {claim.refusal}")
+    if claim.cpu is not None:
+        try:
+            os.sched_setaffinity(0, {claim.cpu})
+            setup.cpu = claim.cpu
+        except (OSError, AttributeError) as error:
+            claim.release()
+            setup.refusals.append(f"CPU affinity refused: {error}")
+    if fifo_priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+            setup.fifo_priority = fifo_priority
+        except (OSError, AttributeError) as error:
+            setup.refusals.append(f"SCHED_FIFO priority {fifo_priority} refused ({error}); running SCHED_OTHER")
+    else:
+        setup.refusals.append("SCHED_FIFO not requested; running SCHED_OTHER")
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         if libc.prctl(_PR_SET_TIMERSLACK, 1_000, 0, 0, 0) == 0:

@@ -38,6 +38,7 @@ from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, StopReason, 
 LOAD_STATES = (SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
 COMMANDS_PER_TICK = 4
 IDLE_COLLECT_PERIOD_S = 10.0
+WORKER_FIFO_PRIORITY = 80
 
 log = logging.getLogger("ssp_rehab.realtime")
 
@@ -54,7 +55,8 @@ class WorkerConfig:
     telemetry_capacity: int
     events_name: str
     events_capacity: int
-    cpu: int | None = None
+    cpu: int | str | None = "auto"  # server.realtime.scheduling: auto, none or a CPU number
+    fifo_priority: int | None = WORKER_FIFO_PRIORITY  # None: do not ask for SCHED_FIFO (benchmarks)
     hal_options: dict[str, Any] = field(default_factory=dict)
 
 
@@ -83,6 +85,7 @@ class Worker:
         self.service_gone = False
         self.shutdown_requested = False
         self._next_collect_s = 0.0
+        self.realtime: dict[str, Any] = {}  # what configure_realtime obtained (the `realtime_setup` command)
 
     # --- events and replies -----------------------------------------------------------------------
 
@@ -132,6 +135,8 @@ class Worker:
                 result = self._load(payload["prescription"], payload.get("patient"))
             elif name == "load_plan":
                 result = self._load_plan(payload["plan"], payload["report"])
+            elif name == "realtime_setup":
+                result = self.realtime
             elif name == "service_lost":  # the daemon lost the console that controls the run
                 self.emit("service_lost", payload or {})
                 pipeline.service_lost()
@@ -189,9 +194,11 @@ class Worker:
     # --- the loop ---------------------------------------------------------------------------------
 
     def run(self) -> None:
-        setup = configure_realtime(self.config.cpu)
+        setup = configure_realtime(self.config.cpu, self.config.fifo_priority)
+        self.realtime = setup.to_dict()
         for refusal in setup.refusals:
             log.warning("real-time setup: %s", refusal)
+        log.info("real-time worker on CPU %s, SCHED_FIFO priority %s", setup.cpu, setup.fifo_priority)
         self.emit(
             "worker_started",
             {

@@ -105,6 +105,7 @@ class LinkState:
     """One attached console: alive while its link is open and it beats."""
 
     pid: int | None = None  # the console's process, to name it in a refusal
+    console: str | None = None  # the console it serves: the web processes of one `serve` share one
     last_beat_s: float = field(default_factory=time.monotonic)
     open: bool = True
 
@@ -351,25 +352,38 @@ class RobotDaemon:
 
     # --- losses -------------------------------------------------------------------------------------
 
-    def link_opened(self, link_id: str, pid: int | None = None) -> None:
+    def link_opened(self, link_id: str, pid: int | None = None, console: str | None = None) -> None:
         with self._lock:
-            self.links[link_id] = LinkState(pid)
+            self.links[link_id] = LinkState(pid, console=console)
 
     def _take_lease(self, controller: str | None) -> None:
         """The session-control lease (issue 15 §2): one console at a time may start motion; it holds the
-        lease until its link ends or falls silent, and the daemon's watchdog follows its beats."""
+        lease while one of its links lives and beats, and the daemon's watchdog follows the link that
+        started the run. The web processes of one `serve --workers N` are one console (issue 20, defect 19:
+        a start on an idle robot landed on another of its processes and was refused)."""
         if controller is None:
             return
-        holder = self.links.get(self.lease_holder) if self.lease_holder is not None else None
-        alive = holder is not None and time.monotonic() - holder.last_beat_s <= self.web_stall_tolerance_s
-        if alive and self.lease_holder != controller:
-            assert holder is not None
+        console = self._console_of(controller)
+        now = time.monotonic()
+        holders = [
+            link
+            for link_id, link in self.links.items()
+            if self.lease_holder is not None
+            and self._console_of(link_id) == self.lease_holder
+            and now - link.last_beat_s <= self.web_stall_tolerance_s
+        ]
+        if holders and self.lease_holder != console:
             raise ConflictError(
-                f"another console (process {holder.pid}) holds the session control of robot {self.robot!r}: "
+                f"another console (process {holders[0].pid}) holds the session control of robot {self.robot!r}: "
                 "start motion there, or close it first",
                 field="lease",
             )
-        self.lease_holder = controller
+        self.lease_holder = console
+
+    def _console_of(self, link_id: str) -> str:
+        """The console a link serves (its own id when it named none)."""
+        link = self.links.get(link_id)
+        return link.console if link is not None and link.console else link_id
 
     def link_beat(self, link_id: str) -> None:
         link = self.links.get(link_id)
@@ -381,8 +395,10 @@ class RobotDaemon:
             link = self.links.pop(link_id, None)
             if link is not None:
                 link.open = False
-            if self.lease_holder == link_id:
-                self.lease_holder = None
+            if self.lease_holder is not None and not any(
+                self._console_of(other) == self.lease_holder for other in self.links
+            ):
+                self.lease_holder = None  # the holder's last link ended
             self._check_controller(closed=link_id)
 
     def _check_controller(self, closed: str | None = None) -> None:

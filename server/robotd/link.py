@@ -45,6 +45,7 @@ RECONNECT_PERIOD_S = 0.25
 COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may take minutes
 MAX_EVENTS_KEPT = 256
 RESPAWN_PERIOD_S = 5.0
+CONSOLE_ID_ENVIRONMENT = "SSP_REHAB_CONSOLE_ID"
 ANOTHER_CONSOLES_DAEMON = "the robot daemon is starting (started by another web process of this robot)"
 
 
@@ -74,6 +75,7 @@ class DaemonLink:
         self._status: StatusBlock | None = None
         self._control: ControlBlock | None = None
         self._state: Seqlock | None = None
+        self.realtime: dict[str, Any] | None = None  # the worker's scheduling, as the daemon reports it
         self._events: collections.deque[dict[str, Any]] = collections.deque(maxlen=MAX_EVENTS_KEPT)
         self._closed = threading.Event()
         self._connected = threading.Event()
@@ -249,7 +251,7 @@ class DaemonLink:
         connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             connection.connect(str(self.paths.socket))
-            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid()}
+            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid(), "console": console_id()}
             connection.sendall((json.dumps(hello_request) + "\n").encode())
             reader = connection.makefile("rb")
             hello = json.loads(reader.readline() or b"null")
@@ -276,6 +278,8 @@ class DaemonLink:
 
     def _attach(self, names: dict[str, Any]) -> None:
         with self._attach_lock:
+            if names.get("realtime") is not None:
+                self.realtime = names["realtime"]
             if names.get("status_name") and (self._status is None or self._status.name != names["status_name"]):
                 self._status = StatusBlock(names["status_name"])
             if names.get("control_name") and (self._control is None or self._control.name != names["control_name"]):
@@ -369,6 +373,12 @@ class LocalLink:
 
     def close(self) -> None:
         self.daemon.shutdown()
+
+
+def console_id() -> str:
+    """The console this web process serves: `serve --workers N` gives its processes one id
+    (`SSP_REHAB_CONSOLE_ID`), so that they share the session-control lease; otherwise the process's own."""
+    return os.environ.get(CONSOLE_ID_ENVIRONMENT) or f"process-{os.getpid()}"
 
 
 def _pid_in(paths: RobotPaths) -> int | None:

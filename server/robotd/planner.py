@@ -14,6 +14,7 @@ from core.plan.build import PrescriptionPlan, build_plan
 from core.plan.check import PrescriptionRejected
 from core.plan.prescription import PrescriptionError
 from core.robot import default_twin, load_twin
+from server.realtime.scheduling import lower_priority
 from server.realtime.supervisor import SupervisorConfig
 
 log = logging.getLogger("ssp_rehab.robotd")
@@ -21,6 +22,7 @@ log = logging.getLogger("ssp_rehab.robotd")
 
 def _planner_entry(twin_path: str | None, control_rate_hz: int, supervisor: dict[str, Any], link: Connection) -> None:
     """Process entry point: answer (prescription, patient) with ("ok", plan, report) or the refusal."""
+    lower_priority("the planning process")  # planning yields to the worker, the recorder and the beats
     twin = load_twin(twin_path) if twin_path else default_twin()
     config = SupervisorConfig.from_dict(supervisor)
     while True:

@@ -41,6 +41,7 @@ from typing import Any
 
 from server.db import Database, create_database_engine, upgrade_database
 from server.realtime.client import WorkerClient
+from server.realtime.scheduling import RealtimeReport, parse_cpu_request
 from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon, refusal_to_dict
 from server.robotd.planner import Planner
 from server.robotd.recovery import recover_open_runs
@@ -113,6 +114,7 @@ class RobotDaemonProcess:
         self.daemon: RobotDaemon | None = None
         self.links: dict[str, socket.socket] = {}
         self.link_pids: dict[str, int | None] = {}
+        self.link_consoles: dict[str, str | None] = {}  # the console (`serve`) each link's web process serves
         self._links_lock = threading.Lock()
         self._stop = threading.Event()
         self._worker_lost = False
@@ -193,9 +195,11 @@ class RobotDaemonProcess:
             str(settings.robot_file) if settings.robot_file else None,
             settings.backend,
             settings.control_rate_hz,
+            cpu=parse_cpu_request(settings.realtime_cpu),
             hal_options=hal_options(settings),
         )
         worker.start(timeout_s=WORKER_START_TIMEOUT_S)
+        self._announce_realtime(worker)
         return worker
 
     def _name_shared_memory(self, worker: WorkerClient) -> None:
@@ -224,6 +228,25 @@ class RobotDaemonProcess:
         self.set_state(DaemonState.READY, "a new real-time worker runs (drives off): reset the robot")
         self.push({"push": "ready", **self.hello()})
 
+    def realtime(self, worker: WorkerClient | None = None) -> dict[str, Any] | None:
+        """The worker's scheduling as /health shows it (None until the worker runs)."""
+        worker = worker or self.worker
+        setup = getattr(worker, "realtime_setup", None) if worker is not None else None
+        return RealtimeReport.from_setup(setup).to_dict() if setup else None
+
+    def _announce_realtime(self, worker: WorkerClient) -> None:
+        report = self.realtime(worker)
+        if report is None:
+            return
+        if report["granted"]:
+            log.info("real-time worker: SCHED_FIFO %s on CPU %s of its own", report["priority"], report["cpu"])
+        else:
+            log.warning(
+                "real-time scheduling NOT granted (%s): sessions may stop on late ticks on a busy computer. %s",
+                "; ".join(report["refusals"]),
+                report["how_to_fix"],
+            )
+
     # --- the socket -------------------------------------------------------------------------------
 
     def hello(self) -> dict[str, Any]:
@@ -234,6 +257,7 @@ class RobotDaemonProcess:
             "status_name": self.status.name if self.status is not None else None,
             "control_name": worker.control.name if worker is not None else None,
             "state_name": worker.state.name if worker is not None else None,
+            "realtime": self.realtime(),
         }
 
     def push(self, message: dict[str, Any]) -> None:
@@ -286,14 +310,17 @@ class RobotDaemonProcess:
             credential += f"; not confirmed by the worker in time ({outcome})"
         return self.daemon.note_emergency_stop(user_id, user_id is not None, f"{credential}; via the stop listener")
 
-    def serve_link(self, connection: socket.socket, reader: Any, web_pid: int | None) -> None:
+    def serve_link(
+        self, connection: socket.socket, reader: Any, web_pid: int | None, console: str | None = None
+    ) -> None:
         prioritise_liveness_thread("a console link")  # its beats decide whether the console is alive
         link_id = uuid.uuid4().hex
         with self._links_lock:
             self.links[link_id] = connection
             self.link_pids[link_id] = web_pid
+            self.link_consoles[link_id] = console
         if self.daemon is not None:
-            self.daemon.link_opened(link_id, web_pid)
+            self.daemon.link_opened(link_id, web_pid, console)
         try:
             _send(connection, {"ok": True, "result": {**self.hello(), "link_id": link_id}})
             for line in reader:
@@ -305,6 +332,7 @@ class RobotDaemonProcess:
             with self._links_lock:
                 self.links.pop(link_id, None)
                 self.link_pids.pop(link_id, None)
+                self.link_consoles.pop(link_id, None)
             if self.daemon is not None:
                 self.daemon.link_closed(link_id)
 
@@ -357,7 +385,7 @@ class RobotDaemonProcess:
             self.daemon.listeners.append(lambda events: self.push({"push": "events", "events": events}))
             with self._links_lock:
                 for link_id, web_pid in self.link_pids.items():
-                    self.daemon.link_opened(link_id, web_pid)
+                    self.daemon.link_opened(link_id, web_pid, self.link_consoles.get(link_id))
             self.daemon.start()
             wait_for_estop_listener(self.paths, self.estop_listener)
             self.set_state(DaemonState.READY, f"backend {settings.backend} at {settings.control_rate_hz} Hz")
@@ -471,7 +499,7 @@ def _serve_socket(owner: RobotDaemonProcess) -> socketserver.UnixStreamServer:
             except ValueError:
                 return
             if request.get("cmd") == "hello" and request.get("persistent"):
-                owner.serve_link(self.connection, self.rfile, request.get("web_pid"))
+                owner.serve_link(self.connection, self.rfile, request.get("web_pid"), request.get("console"))
                 return
             try:
                 reply = {"ok": True, "result": owner.handle(request)}

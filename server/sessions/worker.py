@@ -74,6 +74,7 @@ DAEMON_SETTINGS = (
     "estop_host",
     "estop_port",
     "console_port",
+    "realtime_cpu",
 )
 
 

@@ -106,6 +106,10 @@ class Replay:
         return min(self.frame / self.rate_hz, self.duration_s)
 
 
+class ViewPortTaken(RuntimeError):  # noqa: N818 — a state, not a malfunction
+    """The configured port is in use: one robot gets one 3D view (issue 20, defect 19)."""
+
+
 class LiveView:
     """The viser server, its `TwinScene`, and the thread that feeds it (live or replay)."""
 
@@ -143,6 +147,14 @@ class LiveView:
         self.server = viser.ViserServer(
             host=self.host, port=self.requested_port, label="ssp-rehab 3D view", verbose=False
         )
+        if self.server.get_port() != self.requested_port:  # viser moves on to the next free port by itself
+            moved = self.server.get_port()
+            self.server.stop()
+            self.server = None
+            raise ViewPortTaken(
+                f"the 3D view's port {self.requested_port} is taken (by another web process of this console, or "
+                f"another program): this process serves no 3D view (viser would have opened a second one on {moved})"
+            )
         self.server.gui.configure_theme(
             control_layout="floating", control_width="small", show_logo=False, show_share_button=False
         )
@@ -387,6 +399,10 @@ def start_view(settings: Any, twin: TwinRobot, worker: Any) -> LiveView | None:
     )
     try:
         view.start()
+    except ViewPortTaken as taken:
+        logger.info("%s", taken)
+        view.stop()
+        return None
     except Exception:
         logger.exception(
             "the 3D view did not start on %s:%d: the console runs without it", settings.viz_host, settings.viz_port

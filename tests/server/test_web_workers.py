@@ -94,30 +94,33 @@ def robot_daemons(console: Console) -> list[int]:
 
 
 @pytest.mark.slow
-def test_two_web_processes_share_one_daemon_and_only_the_lease_holder_starts_motion(console: Console) -> None:
-    with each_process(console) as (holder, other):
+def test_two_web_processes_share_one_daemon_and_one_lease(console: Console) -> None:
+    """Issue 20 defect 19: the web processes of one `serve` are one console. Before, a start on the idle
+    robot that landed on the process that had not started the last run was refused (409 "another console
+    (process N) holds the session control"): 5 of 8 starts. Another `serve` is still refused (test_faults)."""
+    with each_process(console) as (first, other):
         # Both processes raced to start the daemon at start-up; the daemon's lock left exactly one.
         daemons = wait_for(lambda: len(d := robot_daemons(console)) == 1 and d, EVENT_TIMEOUT_S, "one robot daemon")
         assert daemons == [console.daemon_pid()], (daemons, console.daemon_pid())
 
-        started = holder.request("POST", f"/sessions/{console.book()}/start")
-        assert started.status_code == 200, started.text
-        stopped = holder.request("POST", f"/sessions/{started.json()['scheduled_session_id']}/stop")
-        assert stopped.status_code == 200, stopped.text
-        wait_for(lambda: console.run(started.json()["id"])["state"] == "ended", EVENT_TIMEOUT_S, "the run to end", 0.1)
-        wait_for(
-            lambda: other.request("GET", "/robot/state").json().get("state") in ("stopped", "idle"),
-            EVENT_TIMEOUT_S,
-            "the robot to stand still",
-        )
-        # The robot stands still and is free, but the session control stays with the first process.
-        refused = other.request("POST", f"/sessions/{console.book()}/start")
-        assert refused.status_code == 409, refused.text
-        assert f"another console (process {holder.pid}) holds the session control" in refused.text, refused.text
-        again = holder.request("POST", f"/sessions/{console.book()}/start")
-        assert again.status_code == 200, f"the lease holder could not start again: {again.text}"
-        stopped = holder.request("POST", f"/sessions/{again.json()['scheduled_session_id']}/stop")
-        assert stopped.status_code == 200, stopped.text
+        for process in (first, other, first):
+            wait_for(
+                lambda process=process: (
+                    process.request("GET", "/robot/state").json().get("state") in ("stopped", "idle")
+                ),
+                EVENT_TIMEOUT_S,
+                "the robot to stand still",
+            )
+            started = process.request("POST", f"/sessions/{console.book()}/start")
+            assert started.status_code == 200, f"process {process.pid}: {started.text}"
+            stopped = process.request("POST", f"/sessions/{started.json()['scheduled_session_id']}/stop")
+            assert stopped.status_code == 200, stopped.text
+            wait_for(
+                lambda run_id=started.json()["id"]: console.run(run_id)["state"] == "ended",
+                EVENT_TIMEOUT_S,
+                "the run to end",
+                0.1,
+            )
     # Each web process logs (JSON lines, as one process does), e.g. its own start-up.
     started_up = [line for line in console.log_text().splitlines() if '"Application startup complete."' in line]
     assert len(started_up) == WEB_PROCESSES, console.log_text()[-3000:]
