@@ -33,6 +33,7 @@ from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
+from server.file_modes import private_directory
 from server.robotd.daemon import RobotDaemon
 from server.robotd.link import LocalLink
 from server.robotd.process import daemon_running
@@ -220,6 +221,7 @@ def create_app(
     settings = settings or Settings()
     load_models()
     twin = load_twin(settings.robot_file) if settings.robot_file else default_twin()
+    private_directory(settings.data_dir)  # patient data, password hashes, the token key: owner-only
     secret_key = settings.resolved_secret_key()
 
     @contextlib.asynccontextmanager

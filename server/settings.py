@@ -15,6 +15,7 @@ from zoneinfo import ZoneInfo
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from server.file_modes import OWNER_ONLY_FILE, private_directory, private_file, tighten
 from server.scheduling.clinic_time import is_zone_name, machine_zone_name
 
 Backend = Literal["sim", "kinematic", "canopen"]
@@ -144,9 +145,9 @@ class Settings(BaseSettings):
             return self.secret_key.get_secret_value().encode()
         path = self.data_dir / SECRET_KEY_FILE
         if not path.exists():
-            self.data_dir.mkdir(parents=True, exist_ok=True)
-            path.touch(mode=0o600)
-            path.write_text(secrets.token_urlsafe(48))
+            private_directory(self.data_dir)
+            private_file(path).write_text(secrets.token_urlsafe(48))
+        tighten(path, OWNER_ONLY_FILE)
         return path.read_text().strip().encode()
 
     def resolved_frontend_dir(self) -> Path | None:

@@ -10,7 +10,7 @@ from typing import Any
 import typer
 from pydantic import ValidationError
 
-from server.cli.output import console, emit, fail
+from server.cli.output import console, emit, error_console, fail
 from server.cli.robot_option import ROBOT_OPTION, DescriptionError
 from server.hal.backends import BACKENDS
 
@@ -59,9 +59,32 @@ def _settings(**overrides: Any) -> Any:
 
 
 def _validation_message(error: ValidationError) -> str:
+    """The first refusal, naming the field, the value (never a secret's: `server.security`) and the rule."""
+    from server.security import shown_value
+
     first = error.errors()[0]
     field = ".".join(str(part) for part in first["loc"])
-    return f"{field} = {first.get('input')!r}: {first['msg']}"
+    return f"{field} = {shown_value(field, first.get('input'))}: {first['msg']}"
+
+
+def _interactive() -> bool:
+    """A person at a terminal, who can be asked again (not a script piping its input)."""
+    import sys
+
+    return sys.stdin.isatty()
+
+
+def _password_refusal(password: str) -> str | None:
+    """Why an account's password is refused (never the password itself), or None."""
+    from pydantic import TypeAdapter
+
+    from server.api_types import Password
+
+    try:
+        TypeAdapter(Password).validate_python(password)
+    except ValidationError as error:
+        return f"password = (not shown): {error.errors()[0]['msg']}"
+    return None
 
 
 def register(app: typer.Typer) -> None:
@@ -224,6 +247,11 @@ def register(app: typer.Typer) -> None:
         from server.users.schemas import UserCreate
         from server.users.service import create_user as create
 
+        while (refusal := _password_refusal(password)) is not None:
+            if not _interactive():
+                raise fail(refusal, as_json=as_json)
+            error_console.print(f"[bold red]refused:[/] {refusal}; choose another")
+            password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
         try:
             data = UserCreate(username=username, password=password, role=role, full_name=full_name)  # type: ignore[arg-type]
         except ValidationError as error:
