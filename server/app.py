@@ -283,7 +283,9 @@ def create_app(
     app.state.pseudonym_key = hmac.new(secret_key, b"patient pseudonyms", hashlib.sha256).digest()
     app.state.auth = AuthState(
         signer=TokenSigner(secret_key),
-        throttle=LoginThrottle(settings.login_max_failures, settings.login_window_s),
+        throttle=LoginThrottle(
+            settings.login_max_failures, settings.login_window_s, delay_max_s=settings.login_delay_max_s
+        ),
         cookie_name=settings.cookie_name,
     )
     app.state.database = database

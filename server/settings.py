@@ -75,13 +75,24 @@ class Settings(BaseSettings):
     )
 
     login_max_failures: int = Field(
-        default=5, ge=1, description="Failed logins per username or client before a lockout."
+        default=5,
+        ge=1,
+        description="Failed logins from one client address before it backs off (429), and on one account before "
+        "each attempt on it is delayed (never refused).",
     )
     login_window_s: float = Field(
         default=300.0,
         gt=0,
-        description="Window in which failures count, and the first lockout's length; repeated lockouts back off "
-        "(twice the failures within four times the window, and so on).",
+        le=86_400,
+        description="Window in which an address's failures count, and its first back-off's length; repeated "
+        "back-offs grow (twice the failures within four times the window, and so on). An account's failures "
+        "count for four windows.",
+    )
+    login_delay_max_s: float = Field(
+        default=10.0,
+        ge=0,
+        le=60,
+        description="Longest delay before an attempt on an account with many recent failures is checked (s).",
     )
 
     timezone: str = Field(

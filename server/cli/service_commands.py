@@ -272,3 +272,39 @@ def register(app: typer.Typer) -> None:
             as_json=as_json,
             human=lambda r: console.print(f"created {r['role']} account [bold]{r['username']}[/] (id {r['id']})"),
         )
+
+    @app.command("unlock-login")
+    def unlock_login(
+        username: str | None = typer.Option(None, "--username", help="Forget this account's failed logins."),
+        address: str | None = typer.Option(None, "--address", help="Lift this client address's back-off."),
+        data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+        as_json: bool = typer.Option(False, "--json"),
+    ) -> None:
+        """Lift a login back-off (an admin's unlock, docs/service.md): a client address, an account, or both."""
+        from server.auth.schemas import LoginUnlock
+        from server.auth.service import unlock_login as unlock
+        from server.auth.throttle import LoginThrottle
+        from server.db import Database, create_database_engine, upgrade_database
+        from server.errors import NotFoundError
+
+        try:
+            request = LoginUnlock(username=username, address=address)  # type: ignore[arg-type]
+        except ValidationError as error:
+            raise fail(_validation_message(error), as_json=as_json) from error
+        settings = _settings(data_dir=data_dir)
+        throttle = LoginThrottle(settings.login_max_failures, settings.login_window_s)
+        engine = create_database_engine(settings.resolved_database_url())
+        try:
+            upgrade_database(engine)
+            with Database(engine).session() as session:
+                lifted = unlock(session=session, throttle=throttle, username=request.username,
+                                address=str(request.address) if request.address else None, actor_id=None)  # fmt: skip
+        except NotFoundError as error:
+            raise fail(str(error), as_json=as_json) from error
+        finally:
+            engine.dispose()
+        emit(
+            {"unlocked": lifted},
+            as_json=as_json,
+            human=lambda r: console.print("unlocked: " + ", ".join(r["unlocked"])),
+        )
