@@ -34,13 +34,13 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 from core import cues
 from core.cues import CueSpecError
 from core.errors import InvalidValueError
+from core.plan.config import FADE_OUT_MAX_S, SEGMENT_DURATION_MAX_S
 from core.robot import MotionLimits
 from core.shaping import SHAPING_KINDS, ParameterError, ShapingParameters
 from core.validation import StrictModel
 from core.washout import HEAD_HEIGHT_MAX_M, WashoutParameters, paper_tilt_parameters
 
 SEGMENT_COUNT_MAX = 100
-SEGMENT_DURATION_MAX_S = cues.CUE_TIME_MAX_S
 CSV_CUE_MAX_BYTES = 32 * 1024 * 1024  # a csv_replay cue's text; parsing it is bounded before it starts
 SEED_MAX = 2**32 - 1  # numpy's generators take non-negative seeds
 CUEING_ALGORITHMS = ("classical", "optimal")
@@ -370,7 +370,8 @@ class Segment(_Strict):
     duration_s: float = Field(
         gt=0.0,
         le=SEGMENT_DURATION_MAX_S,
-        description="Duration of the cue, s (a fade out follows; at least the soft start).",
+        description=f"Duration of the cue, s: at least the soft start, at most {SEGMENT_DURATION_MAX_S:g} s (the cue "
+        f"generator's {cues.CUE_TIME_MAX_S:g} s hold the fade out that follows too, up to {FADE_OUT_MAX_S:g} s).",
     )
     washout: Washout = Field(
         default_factory=lambda: Washout(**paper_tilt_parameters().to_dict()),
