@@ -273,7 +273,7 @@ _WASHOUT_DESCRIPTIONS = {
 }
 # Physical ranges: far wider than any tuning uses, narrow enough that every filter design stays well conditioned.
 GAIN_MAX = 10.0
-BREAK_RANGE_RAD_S = (0.01, 100.0)
+BREAK_RANGE_RAD_S = (0.001, 100.0)  # the tuner searches down to 0.001 rad/s (core.tuning.DEFAULT_BOUNDS)
 DAMPING_RANGE = (0.05, 10.0)
 
 
