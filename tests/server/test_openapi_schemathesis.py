@@ -26,6 +26,7 @@ from server.prescriptions.models import PrescriptionVersion
 from server.settings import Settings
 from tests.server.conftest import TEST_SECRET, FakeWorker, Seed, book, create_patient, create_prescription
 
+REQUEST_TIMEOUT_S = 300.0
 EXAMPLES_PER_OPERATION = {GenerationMode.POSITIVE: 6, GenerationMode.NEGATIVE: 4}
 # Operations that may end the login they are called with (logout; an account's deactivation or new password).
 TOKEN_ENDING = {("POST", "/api/v1/auth/logout"), ("PATCH", "/api/v1/users/{user_id}")}
@@ -117,7 +118,8 @@ def server_errors_of(operation: Any, mode: GenerationMode, headers: Callable[[],
         database=None,
     )
     def call(case: Any) -> None:
-        response = case.call(headers=headers())
+        # A generous timeout: a preview plans a whole prescription, which takes over 10 s on a loaded machine.
+        response = case.call(headers=headers(), timeout=REQUEST_TIMEOUT_S)
         # 503 is the documented answer of a part that is not running here (the 3D view), not a crash.
         unavailable = response.status_code == 503 and "not running" in response.text
         if response.status_code >= 500 and not unavailable:
