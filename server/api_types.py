@@ -1,7 +1,7 @@
 """Field types shared by the request schemas of every domain, so that bad input is a 422 naming the field.
 
 Strings refuse NUL characters (PostgreSQL cannot store them), ids and page sizes are bounded (SQLite
-integers are 64-bit), and floats must be finite.
+integers are 64-bit), and floats must be finite and normal (`core.validation`).
 """
 
 from __future__ import annotations
@@ -10,6 +10,8 @@ from typing import Annotated
 
 from fastapi import Path, Query
 from pydantic import BaseModel, ConfigDict, StringConstraints
+
+from core.validation import StrictModel
 
 NO_NUL_PATTERN = r"^[^\x00]*$"
 MAX_ID = 2**31 - 1
@@ -34,10 +36,8 @@ Limit = Annotated[int, Query(ge=1, le=500, description="Page size.")]
 Offset = Annotated[int, Query(ge=0, le=MAX_ID, description="Rows to skip.")]
 
 
-class RequestModel(BaseModel):
-    """Request bodies: unknown fields and non-finite numbers are refused, never ignored."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+class RequestModel(StrictModel):
+    """Request bodies: unknown fields, non-finite and subnormal numbers are refused at their field."""
 
 
 class ResponseModel(BaseModel):

@@ -37,6 +37,7 @@ from server.auth.throttle import LoginThrottle
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.exports.jobs import ExportJobs
+from server.file_modes import private_directory
 from server.observability.health import DatabaseProbe
 from server.prescriptions.preview import PreviewProcess
 from server.realtime.scheduling import lower_priority
@@ -251,6 +252,7 @@ def create_app(
     settings = settings or Settings()
     load_models()
     twin = load_twin(settings.robot_file) if settings.robot_file else default_twin()
+    private_directory(settings.data_dir)  # patient data, password hashes, the token key: owner-only
     secret_key = settings.resolved_secret_key()
 
     @contextlib.asynccontextmanager
@@ -320,7 +322,9 @@ def create_app(
     app.state.pseudonym_key = hmac.new(secret_key, b"patient pseudonyms", hashlib.sha256).digest()
     app.state.auth = AuthState(
         signer=TokenSigner(secret_key),
-        throttle=LoginThrottle(settings.login_max_failures, settings.login_window_s),
+        throttle=LoginThrottle(
+            settings.login_max_failures, settings.login_window_s, delay_max_s=settings.login_delay_max_s
+        ),
         cookie_name=settings.cookie_name,
     )
     app.state.database = database

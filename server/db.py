@@ -23,6 +23,8 @@ from sqlalchemy.exc import DBAPIError, InternalError, OperationalError
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.types import TypeDecorator
 
+from server.file_modes import OWNER_ONLY_FILE, private_directory, private_file, tighten
+
 P = ParamSpec("P")
 R = TypeVar("R")
 MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
@@ -73,8 +75,14 @@ def create_database_engine(url: str, **engine_options: Any) -> Engine:
             url, pool_pre_ping=True, pool_size=10, max_overflow=30, hide_parameters=True, **engine_options
         )
     database = make_url(url).database
-    if database and database != ":memory:":
-        Path(database).parent.mkdir(parents=True, exist_ok=True)
+    if database and database != ":memory:" and not database.startswith("file:"):
+        # Password hashes and patient data: owner-only (SQLite gives its -wal and -shm files the same mode).
+        path = Path(database)
+        if not path.parent.exists():
+            private_directory(path.parent)
+        private_file(path)
+        for companion in ("-wal", "-shm", "-journal"):
+            tighten(path.with_name(path.name + companion), OWNER_ONLY_FILE)
     engine = create_engine(
         url,
         connect_args={"check_same_thread": False, "timeout": 30},

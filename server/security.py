@@ -38,7 +38,8 @@ ORIGIN_CHECK_ONLY = frozenset({"/api/v1/estop", "/api/v1/auth/login"})
 DOCUMENTATION_PATHS = frozenset({"/docs", "/docs/oauth2-redirect", "/redoc"})
 EXCERPT_CHARS = 40
 logger = logging.getLogger(__name__)
-SECRET_FIELDS = frozenset({"password", "secret", "secret_key", "token", "access_token"})
+# A field is secret when a word of its name is one of these: password, new_password, api_key, refresh_token, ...
+SECRET_WORDS = frozenset({"password", "passwd", "passphrase", "secret", "token", "key"})
 
 
 # --- origins ---------------------------------------------------------------------------------------------
@@ -323,8 +324,12 @@ def _sendable(value: Any) -> Any:
     return excerpt(value) if isinstance(value, float) else value
 
 
+def is_secret_field(name: Any) -> bool:
+    return any(word in SECRET_WORDS for word in re.split(r"[^a-z0-9]+", str(name).lower()))
+
+
 def _is_secret(location: Iterable[Any]) -> bool:
-    return any(str(part).lower() in SECRET_FIELDS for part in location)
+    return any(is_secret_field(part) for part in location)
 
 
 def shown_value(field: str, value: Any) -> str:

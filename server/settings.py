@@ -15,6 +15,7 @@ from zoneinfo import ZoneInfo
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from server.file_modes import OWNER_ONLY_FILE, private_directory, private_file, tighten
 from server.realtime.scheduling import parse_cpu_request
 from server.scheduling.clinic_time import is_zone_name, machine_zone_name
 
@@ -75,13 +76,24 @@ class Settings(BaseSettings):
     )
 
     login_max_failures: int = Field(
-        default=5, ge=1, description="Failed logins per username or client before a lockout."
+        default=5,
+        ge=1,
+        description="Failed logins from one client address before it backs off (429), and on one account before "
+        "each attempt on it is delayed (never refused).",
     )
     login_window_s: float = Field(
         default=300.0,
         gt=0,
-        description="Window in which failures count, and the first lockout's length; repeated lockouts back off "
-        "(twice the failures within four times the window, and so on).",
+        le=86_400,
+        description="Window in which an address's failures count, and its first back-off's length; repeated "
+        "back-offs grow (twice the failures within four times the window, and so on). An account's failures "
+        "count for four windows.",
+    )
+    login_delay_max_s: float = Field(
+        default=10.0,
+        ge=0,
+        le=60,
+        description="Longest delay before an attempt on an account with many recent failures is checked (s).",
     )
 
     timezone: str = Field(
@@ -185,9 +197,9 @@ class Settings(BaseSettings):
             return self.secret_key.get_secret_value().encode()
         path = self.data_dir / SECRET_KEY_FILE
         if not path.exists():
-            self.data_dir.mkdir(parents=True, exist_ok=True)
-            path.touch(mode=0o600)
-            path.write_text(secrets.token_urlsafe(48))
+            private_directory(self.data_dir)
+            private_file(path).write_text(secrets.token_urlsafe(48))
+        tighten(path, OWNER_ONLY_FILE)
         return path.read_text().strip().encode()
 
     def resolved_frontend_dir(self) -> Path | None:

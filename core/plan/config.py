@@ -10,10 +10,16 @@ from typing import ClassVar
 import numpy as np
 
 from core.clearance import IK_EXACT_BELOW_M, STOP_CLEARANCE_MARGIN_M
+from core.cues import CUE_TIME_MAX_S
 from core.errors import InvalidValueError
 from core.plan.ramps import return_duration_s
 
 DEFAULT_CONTROL_RATE_HZ = 1000  # the worker's rate unless configured otherwise
+# A segment's cue is generated for its duration plus the fade out, within the generator's span
+# (core.cues.CUE_TIME_MAX_S); bounding the fade out lets the prescription model refuse, when a segment is
+# saved, the duration that could not start (issue 20, defect 19): one rule, `SEGMENT_DURATION_MAX_S`.
+FADE_OUT_MAX_S = 5.0
+SEGMENT_DURATION_MAX_S = CUE_TIME_MAX_S - FADE_OUT_MAX_S
 
 
 class PlanConfigError(InvalidValueError):
@@ -43,6 +49,8 @@ class PlanConfig:
             value = getattr(self, item.name)
             if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
                 raise self.error(item.name, value, "must be a finite number > 0")
+        if self.fade_out_s > FADE_OUT_MAX_S:
+            raise self.error("fade_out_s", self.fade_out_s, f"must be <= {FADE_OUT_MAX_S:g} s")
         if self.limit_margin_fraction >= 0.5:
             raise self.error("limit_margin_fraction", self.limit_margin_fraction, "must be < 0.5")
         if self.clearance_margin_m > IK_EXACT_BELOW_M:  # the tick screens pairs for breaches that close only

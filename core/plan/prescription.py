@@ -34,12 +34,13 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 from core import cues
 from core.cues import CueSpecError
 from core.errors import InvalidValueError
+from core.plan.config import FADE_OUT_MAX_S, SEGMENT_DURATION_MAX_S
 from core.robot import MotionLimits
 from core.shaping import SHAPING_KINDS, ParameterError, ShapingParameters
+from core.validation import StrictModel
 from core.washout import HEAD_HEIGHT_MAX_M, WashoutParameters, paper_tilt_parameters
 
 SEGMENT_COUNT_MAX = 100
-SEGMENT_DURATION_MAX_S = cues.CUE_TIME_MAX_S
 CSV_CUE_MAX_BYTES = 32 * 1024 * 1024  # a csv_replay cue's text; parsing it is bounded before it starts
 SEED_MAX = 2**32 - 1  # numpy's generators take non-negative seeds
 CUEING_ALGORITHMS = ("classical", "optimal")
@@ -50,8 +51,7 @@ class PrescriptionError(InvalidValueError):
     """A malformed prescription or patient; names the field, the value and the rule it broke."""
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+_Strict = StrictModel  # unknown fields, NaN, ±inf and subnormal numbers refused at their field
 
 
 # --- Cue kinds (core.cues) ----------------------------------------------------------------------------
@@ -271,9 +271,27 @@ _WASHOUT_DESCRIPTIONS = {
     "rotational_break_rad_s": "Break of the rotational high-pass, rad/s.",
     "head_height_m": f"Head above the foot plates, m, in [0, {HEAD_HEIGHT_MAX_M:g}]; 0: cue at the rotation centre.",
 }
-_WASHOUT_BOUNDS = {name: {"ge": 0.0} if name.endswith("_gain") else {"gt": 0.0} for name in _WASHOUT_DESCRIPTIONS} | {
-    "head_height_m": {"ge": 0.0, "le": HEAD_HEIGHT_MAX_M}
-}
+# Physical ranges: far wider than any tuning uses, narrow enough that every filter design stays well conditioned.
+GAIN_MAX = 10.0
+BREAK_RANGE_RAD_S = (0.001, 100.0)  # the tuner searches down to 0.001 rad/s (core.tuning.DEFAULT_BOUNDS)
+DAMPING_RANGE = (0.05, 10.0)
+
+
+def _washout_bounds(name: str) -> dict[str, float]:
+    if name.endswith("_gain"):
+        return {"ge": 0.0, "le": GAIN_MAX}
+    if name.endswith("_break_rad_s"):
+        return {"ge": BREAK_RANGE_RAD_S[0], "le": BREAK_RANGE_RAD_S[1]}
+    if name.endswith("_damping"):
+        return {"ge": DAMPING_RANGE[0], "le": DAMPING_RANGE[1]}
+    if name == "specific_force_limit_m_s2":
+        return {"gt": 0.0, "le": _F}
+    if name.endswith("_limit_rad_s"):
+        return {"gt": 0.0, "le": _W}
+    return {"ge": 0.0, "le": HEAD_HEIGHT_MAX_M}  # head_height_m
+
+
+_WASHOUT_BOUNDS = {name: _washout_bounds(name) for name in _WASHOUT_DESCRIPTIONS}
 _WashoutFields = _parameters_model(WashoutParameters, _WASHOUT_DESCRIPTIONS, _WASHOUT_BOUNDS)
 
 
@@ -296,13 +314,15 @@ _SHAPING_DESCRIPTIONS = {
     "mode_band_fraction": "Half-width of the band around the mode, as a fraction of it, in [0, 1).",
     "required_attenuation_db": "Attenuation required over that band, dB.",
 }
+SHAPING_FREQUENCY_RANGE_HZ = (0.1, 100.0)  # cut-offs, notches and modes; the control rate's Nyquist is 500 Hz
 _SHAPING_BOUNDS: dict[str, dict[str, Any]] = {
-    "lowpass_cutoff_hz": {"gt": 0.0},
+    "lowpass_cutoff_hz": {"ge": SHAPING_FREQUENCY_RANGE_HZ[0], "le": SHAPING_FREQUENCY_RANGE_HZ[1]},
     "lowpass_order": {"ge": 1, "le": 8},
-    "notch_frequency_hz": {"gt": 0.0},
-    "notch_quality": {"gt": 0.0},
-    "first_mode_hz": {"gt": 0.0},
+    "notch_frequency_hz": {"ge": SHAPING_FREQUENCY_RANGE_HZ[0], "le": SHAPING_FREQUENCY_RANGE_HZ[1]},
+    "notch_quality": {"ge": 0.05, "le": 100.0},
+    "first_mode_hz": {"ge": SHAPING_FREQUENCY_RANGE_HZ[0], "le": SHAPING_FREQUENCY_RANGE_HZ[1]},
     "mode_band_fraction": {"ge": 0.0, "lt": 1.0},
+    "required_attenuation_db": {"ge": 0.0, "le": 120.0},
 }
 _ShapingFields = _parameters_model(ShapingParameters, _SHAPING_DESCRIPTIONS, _SHAPING_BOUNDS)
 
@@ -350,7 +370,8 @@ class Segment(_Strict):
     duration_s: float = Field(
         gt=0.0,
         le=SEGMENT_DURATION_MAX_S,
-        description="Duration of the cue, s (a fade out follows; at least the soft start).",
+        description=f"Duration of the cue, s: at least the soft start, at most {SEGMENT_DURATION_MAX_S:g} s (the cue "
+        f"generator's {cues.CUE_TIME_MAX_S:g} s hold the fade out that follows too, up to {FADE_OUT_MAX_S:g} s).",
     )
     washout: Washout = Field(
         default_factory=lambda: Washout(**paper_tilt_parameters().to_dict()),

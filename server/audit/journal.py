@@ -32,6 +32,7 @@ from sqlalchemy import insert, select
 
 from server.audit.models import AuditEntry
 from server.db import Database, write_transaction
+from server.file_modes import private_directory
 
 logger = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ class AuditJournal:
 
     def open(self, database: Database) -> None:
         """Start journaling into a fresh file, replay what earlier processes left, start the drainer."""
-        self.directory.mkdir(parents=True, exist_ok=True)
+        private_directory(self.directory)
         self._database = database
         self._open_active()
         self.drain()

@@ -10,7 +10,9 @@ from sqlalchemy.orm import Session
 from server.audit import service as audit
 from server.auth.models import AuthSession
 from server.auth.security import TokenClaims, TokenSigner, new_session_id, verify_password
-from server.db import utc_now, writes
+from server.auth.throttle import LoginThrottle, account_bucket, address_bucket
+from server.db import utc_now, write_transaction, writes
+from server.errors import NotFoundError
 from server.users.models import User
 
 
@@ -44,3 +46,23 @@ def revoke_login_session(*, session: Session, session_id: str, user_id: int) -> 
     if login is not None and login.revoked_at is None:
         login.revoked_at = utc_now()
     audit.record(session=session, user_id=user_id, action="logout", resource_type="user", resource_id=user_id)
+
+
+def unlock_login(
+    *, session: Session, throttle: LoginThrottle, username: str | None, address: str | None, actor_id: int | None
+) -> list[str]:
+    """Lift an address's back-off and/or an account's delay (server.auth.throttle); what was lifted."""
+    lifted = []
+    if username is not None:
+        user = account_named(session=session, username=username)
+        if user is None:
+            raise NotFoundError("account", username)
+        throttle.unlock(session, account_bucket(user.id))
+        lifted.append(f"account {user.username}")
+    if address is not None:
+        throttle.unlock(session, address_bucket(address))
+        lifted.append(f"address {address}")
+    with write_transaction(session):
+        audit.record(session=session, user_id=actor_id, action="unlock_login", resource_type="user",
+                     resource_id=None, details={"lifted": lifted})  # fmt: skip
+    return lifted

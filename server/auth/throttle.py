@@ -1,23 +1,30 @@
 """Login throttling with the `limits` library, its counters kept in the database so that every web process
 and every console on the same database shares them (issue 15 §3).
 
-Two kinds of bucket, counted separately: the account (any address), and the client address (any account).
-A failure for a username that does not exist counts only towards that name, so guessing at unknown users
-never locks out a real account from the same address; those guesses can win nothing.
+Two measures, so that the throttle can never be turned against a clinician (issue 20, defect 17):
 
-Each bucket has tiers that back off: `max_failures` within `window_s`, then twice as many within four
-times the window, and so on. An attempt takes a slot in every tier *before* the password is checked and
-keeps it when the password is wrong, so parallel guesses cannot outrun the count: the counter is one atomic
-upsert. A refused attempt gives its slots back (it checked nothing); a success clears the account's record
-and gives back the address's slot.
+- **The address backs off.** Failures from one client address (any name, known or not) have tiers that
+  back off: `max_failures` within `window_s`, then twice as many within four times the window, and so on;
+  past a tier the address gets 429 with Retry-After. The address is the connecting one; X-Forwarded-For is
+  believed only from `trusted_proxies` (server.app), so a header cannot aim the lock at someone else. An
+  attempt takes its slots *before* the password is checked and keeps them when it is wrong, so parallel
+  guesses cannot outrun the count (one atomic upsert); a success gives them back.
+- **The account slows down, never locks.** Failures on one account (or one unknown name: the same timing,
+  so a name's existence does not show) from any address count within four windows; past `max_failures`
+  each attempt on it waits 1 s, 2 s, 4 s … up to `delay_max_s` before its password is checked. Guessing
+  from many addresses is slowed; the right password still gets in, from any address that is not itself
+  backing off. A success clears the account's count.
+
+An admin lifts either (`POST /api/v1/auth/unlock`, `ssp-rehab unlock-login`).
 """
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from typing import cast
 
 from limits import RateLimitItem, RateLimitItemPerSecond
@@ -33,6 +40,7 @@ from server.db import write_transaction
 
 Bucket = tuple[str, str]  # (kind, identifier): ("account", "17"), ("address", "10.0.0.5"), ("name", <digest>)
 BACKOFF_TIERS = 3
+DELAY_MAX_S = 10.0
 _COUNTERS = RateLimitCounter
 
 
@@ -108,6 +116,10 @@ class DatabaseStorage(Storage):
         with write_transaction(self._session):
             self._session.execute(delete(_COUNTERS).where(_COUNTERS.key == key))
 
+    def clear_prefix(self, prefix: str) -> None:
+        with write_transaction(self._session):
+            self._session.execute(delete(_COUNTERS).where(_COUNTERS.key.startswith(prefix, autoescape=True)))
+
 
 def account_bucket(user_id: int) -> Bucket:
     return ("account", str(user_id))
@@ -124,15 +136,25 @@ def address_bucket(address: str) -> Bucket:
 
 class LoginThrottle:
     def __init__(
-        self, max_failures: int, window_s: float, *, tiers: int = BACKOFF_TIERS, clock: Callable[[], float] = time.time
+        self,
+        max_failures: int,
+        window_s: float,
+        *,
+        delay_max_s: float = DELAY_MAX_S,
+        tiers: int = BACKOFF_TIERS,
+        clock: Callable[[], float] = time.time,
     ) -> None:
         self.max_failures = max_failures
         self.window_s = window_s
+        self.delay_max_s = delay_max_s
         self.clock = clock
+        self.sleep: Callable[[float], Awaitable[None]] = asyncio.sleep  # how a delay is waited for
         window = max(1, math.ceil(window_s))
         self.limits: list[RateLimitItem] = [
             RateLimitItemPerSecond(max_failures * 2**tier, window * 4**tier, namespace="login") for tier in range(tiers)
         ]
+        # Counts an account's failures only; never refuses (the amount is far beyond any count).
+        self.account_failures = RateLimitItemPerSecond(2**31, window * 4, namespace="login-delay")
 
     def _limiter(self, session: Session) -> tuple[FixedWindowRateLimiter, DatabaseStorage]:
         storage = DatabaseStorage(session, lambda: self.clock())
@@ -162,10 +184,30 @@ class LoginThrottle:
         ]
         return max([1.0, *waits])
 
+    def delay_s(self, session: Session, account: Bucket) -> float:
+        """How long an attempt on `account` waits before its password is checked: 0 until `max_failures`
+        failures from anywhere, then 1 s, doubling with each further failure, at most `delay_max_s`."""
+        _limiter, storage = self._limiter(session)
+        excess = storage.get(self.account_failures.key_for(*account)) - self.max_failures
+        return 0.0 if excess < 0 else min(self.delay_max_s, 2.0 ** min(excess, 62))
+
+    def failed(self, session: Session, account: Bucket) -> None:
+        """A wrong password for `account` (the addresses keep the slots `reserve` took)."""
+        _limiter, storage = self._limiter(session)
+        storage.incr(self.account_failures.key_for(*account), self.account_failures.get_expiry())
+
     def succeeded(self, session: Session, *, account: Bucket, others: Sequence[Bucket]) -> None:
         """The password was right: the account's record is cleared, the other buckets get their slot back."""
         _limiter, storage = self._limiter(session)
+        storage.clear(self.account_failures.key_for(*account))
         for limit in self.limits:
-            storage.clear(limit.key_for(*account))
+            storage.clear(limit.key_for(*account))  # records of before the delay: an upgrade leaves them
             for bucket in others:
                 storage.incr(limit.key_for(*bucket), limit.get_expiry(), amount=-1)
+
+    def unlock(self, session: Session, bucket: Bucket) -> None:
+        """An admin lifts an address's back-off or an account's delay, whatever limits counted them (the
+        keys name the limit: `login/address/10.0.0.5/5/300/second`)."""
+        _limiter, storage = self._limiter(session)
+        for namespace in {limit.namespace for limit in [*self.limits, self.account_failures]}:
+            storage.clear_prefix("/".join([namespace, *bucket, ""]))

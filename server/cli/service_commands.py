@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 
 from core.errors import InvalidValueError
-from server.cli.output import console, emit, fail
+from server.cli.output import console, emit, error_console, fail
 from server.cli.robot_option import ROBOT_OPTION
 
 ROLES = ("admin", "therapist")
@@ -67,9 +67,32 @@ def _settings(**overrides: Any) -> Any:
 
 
 def _validation_message(error: ValidationError) -> str:
+    """The first refusal, naming the field, the value (never a secret's: `server.security`) and the rule."""
+    from server.security import shown_value
+
     first = error.errors()[0]
     field = ".".join(str(part) for part in first["loc"])
-    return f"{field} = {first.get('input')!r}: {first['msg']}"
+    return f"{field} = {shown_value(field, first.get('input'))}: {first['msg']}"
+
+
+def _interactive() -> bool:
+    """A person at a terminal, who can be asked again (not a script piping its input)."""
+    import sys
+
+    return sys.stdin.isatty()
+
+
+def _password_refusal(password: str) -> str | None:
+    """Why an account's password is refused (never the password itself), or None."""
+    from pydantic import TypeAdapter, ValidationError
+
+    from server.api_types import Password
+
+    try:
+        TypeAdapter(Password).validate_python(password)
+    except ValidationError as error:
+        return f"password = (not shown): {error.errors()[0]['msg']}"
+    return None
 
 
 def register(app: typer.Typer) -> None:
@@ -246,6 +269,11 @@ def register(app: typer.Typer) -> None:
         from server.users.schemas import UserCreate
         from server.users.service import create_user as create
 
+        while (refusal := _password_refusal(password)) is not None:
+            if not _interactive():
+                raise fail(refusal, as_json=as_json)
+            error_console.print(f"[bold red]refused:[/] {refusal}; choose another")
+            password = typer.prompt("Password", hide_input=True, confirmation_prompt=True)
         try:
             data = UserCreate(username=username, password=password, role=role, full_name=full_name)  # type: ignore[arg-type]
         except ValidationError as error:
@@ -265,4 +293,42 @@ def register(app: typer.Typer) -> None:
             result,
             as_json=as_json,
             human=lambda r: console.print(f"created {r['role']} account [bold]{r['username']}[/] (id {r['id']})"),
+        )
+
+    @app.command("unlock-login")
+    def unlock_login(
+        username: str | None = typer.Option(None, "--username", help="Forget this account's failed logins."),
+        address: str | None = typer.Option(None, "--address", help="Lift this client address's back-off."),
+        data_dir: Path | None = typer.Option(None, "--data-dir", help=DATA_DIR_HELP),
+        as_json: bool = typer.Option(False, "--json"),
+    ) -> None:
+        """Lift a login back-off (an admin's unlock, docs/service.md): a client address, an account, or both."""
+        from pydantic import ValidationError
+
+        from server.auth.schemas import LoginUnlock
+        from server.auth.service import unlock_login as unlock
+        from server.auth.throttle import LoginThrottle
+        from server.db import Database, create_database_engine, upgrade_database
+        from server.errors import NotFoundError
+
+        try:
+            request = LoginUnlock(username=username, address=address)  # type: ignore[arg-type]
+        except ValidationError as error:
+            raise fail(_validation_message(error), as_json=as_json) from error
+        settings = _settings(data_dir=data_dir)
+        throttle = LoginThrottle(settings.login_max_failures, settings.login_window_s)
+        engine = create_database_engine(settings.resolved_database_url())
+        try:
+            upgrade_database(engine)
+            with Database(engine).session() as session:
+                lifted = unlock(session=session, throttle=throttle, username=request.username,
+                                address=str(request.address) if request.address else None, actor_id=None)  # fmt: skip
+        except NotFoundError as error:
+            raise fail(str(error), as_json=as_json) from error
+        finally:
+            engine.dispose()
+        emit(
+            {"unlocked": lifted},
+            as_json=as_json,
+            human=lambda r: console.print("unlocked: " + ", ".join(r["unlocked"])),
         )

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from server.file_modes import private_directory
 from server.jsonable import to_jsonable
 
 
@@ -34,7 +35,7 @@ class RunJournal:
 
     def __init__(self, journal_dir: Path, run_id: int, dtype: np.dtype) -> None:
         self.directory = run_directory(journal_dir, run_id)
-        self.directory.mkdir(parents=True, exist_ok=True)
+        private_directory(self.directory)
         (self.directory / "dtype.json").write_text(json.dumps(np.lib.format.dtype_to_descr(dtype)))
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND
         self.telemetry_path, self.events_path = self.directory / "telemetry.bin", self.directory / "events.jsonl"

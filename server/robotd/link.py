@@ -22,6 +22,7 @@ import threading
 import time
 from typing import Any
 
+from server.file_modes import private_directory
 from server.realtime.shm import ControlBlock, Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
 from server.robotd import estop
@@ -390,7 +391,7 @@ def _pid_in(paths: RobotPaths) -> int | None:
 
 def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
     """`ssp-rehab robot --robot NAME` in its own session, so that it outlives this web process."""
-    paths.directory.mkdir(parents=True, exist_ok=True)
+    private_directory(paths.directory)
     with paths.log.open("ab") as log_file:
         return subprocess.Popen(
             [

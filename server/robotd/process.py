@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from server.db import Database, create_database_engine, upgrade_database
+from server.file_modes import private_directory
 from server.realtime.client import WorkerClient
 from server.realtime.scheduling import RealtimeReport, parse_cpu_request
 from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon, refusal_to_dict
@@ -78,7 +79,7 @@ def hal_options(settings: Settings) -> dict[str, Any]:
 
 def take_lock(paths: RobotPaths) -> int:
     """The robot's lock (held until this process ends, however it ends), or `AlreadyRunning`."""
-    paths.directory.mkdir(parents=True, exist_ok=True)
+    private_directory(paths.directory)
     descriptor = os.open(paths.lock, os.O_RDWR | os.O_CREAT, 0o600)
     try:
         fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -4,6 +4,7 @@ events, the telemetry WebSocket, and session-log export (per run and bulk, for s
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import logging
 import time
@@ -24,6 +25,7 @@ from fastapi import (
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from sqlalchemy import func, select
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm import Session
 
 from server import exports
@@ -40,6 +42,7 @@ from server.auth.dependencies import (
     unauthorized,
     user_for_claims,
 )
+from server.auth.live import LOGIN_RECHECK_S, ended_here, ended_in_database
 from server.auth.safe_commands import SafeCommandUser
 from server.auth.security import TokenClaims
 from server.db import Database, SessionDep, get_session, writes
@@ -532,11 +535,33 @@ async def telemetry(websocket: WebSocket, session_id: int) -> None:
         await websocket.send_json({"type": "error", "detail": NO_ROBOT})
         await websocket.close(code=status.WS_1013_TRY_AGAIN_LATER, reason="no robot connected")
         return
+    assert claims is not None  # _authorise_watch refused otherwise
     queue = fanout.subscribe()
     try:
-        while True:
-            await websocket.send_text(await queue.get())
+        await _send_while_logged_in(websocket, queue, state, claims)
     except (WebSocketDisconnect, RuntimeError):
         pass  # the client went away
     finally:
         fanout.unsubscribe(queue)
+
+
+async def _send_while_logged_in(
+    websocket: WebSocket, queue: asyncio.Queue[str], state: AuthState, claims: TokenClaims
+) -> None:
+    """Frames until the login ends (server.auth.live), then a close that says why."""
+    loop = asyncio.get_running_loop()
+    next_check = loop.time() + LOGIN_RECHECK_S
+    while True:
+        frame: str | None = None
+        with contextlib.suppress(TimeoutError):
+            frame = await asyncio.wait_for(queue.get(), timeout=max(0.0, next_check - loop.time()))
+        ended = ended_here(state, claims)
+        if ended is None and loop.time() >= next_check:
+            with contextlib.suppress(OperationalError):  # the database is down: telemetry keeps flowing
+                ended = await run_in_threadpool(ended_in_database, websocket.app.state.database, claims)
+            next_check = loop.time() + LOGIN_RECHECK_S
+        if ended is not None:
+            await websocket.close(code=status.WS_1008_POLICY_VIOLATION, reason=ended)
+            return
+        if frame is not None:
+            await websocket.send_text(frame)

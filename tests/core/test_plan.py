@@ -69,8 +69,14 @@ def test_a_limit_may_only_tighten_the_robots_named_with_value_and_limit() -> Non
 
 
 def test_a_washout_that_would_ring_without_bound_is_refused_not_a_crash() -> None:
-    """Found by the API's schemathesis run: a tilt damping of 5e-324 divided by zero (a 500) in the model."""
+    """Found by the API's schemathesis run: a tilt damping of 5e-324 divided by zero (a 500) in the model. A
+    subnormal damping is now refused at its field (issue 20: the damping range); the smallest damping in
+    range still meets the rule between fields."""
     segment = {"cue": MINIMAL_SEGMENT_CUE, "duration_s": 5.0, "washout": {"tilt_damping": 5e-324}}
+    with pytest.raises(PrescriptionError) as refused:
+        parse_prescription({"segments": [segment]})
+    assert refused.value.field == "segments[0].washout.tilt_damping" and "0.05" in refused.value.limit
+    segment["washout"] = {"tilt_damping": 0.05}
     with pytest.raises(PrescriptionError) as refused:
         parse_prescription({"segments": [segment]})
     assert refused.value.field == "segments[0].washout.specific_force_limit_m_s2" and "0.99 g" in refused.value.limit

@@ -85,7 +85,7 @@ def test_login_is_throttled_after_repeated_failures_even_with_the_right_password
         locked = login(client, "therapist", THERAPIST_PASSWORD)
         assert locked.status_code == 429
         assert int(locked.headers["Retry-After"]) > 0
-        # The lockout is per account and per client: the admin from another address may still log in.
+        # The back-off is the address's: the admin from another address may still log in.
         other = TestClient(client.app, client=("10.0.0.9", 5000))
         assert login(other, "admin", ADMIN_PASSWORD).status_code == 200
 
