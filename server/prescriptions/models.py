@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import Any, ClassVar
 
 from sqlalchemy import JSON, ForeignKey, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column, relationship
@@ -24,6 +24,10 @@ class Prescription(Base):
     versions: Mapped[list[PrescriptionVersion]] = relationship(
         back_populates="prescription", order_by="PrescriptionVersion.version", lazy="selectin"
     )
+
+    # Optimistic concurrency: a revision's UPDATE is `... WHERE latest_version = <the one read>`, so of two
+    # revisions based on one version the second writes nothing (the service sets the new number itself).
+    __mapper_args__: ClassVar[dict[str, Any]] = {"version_id_col": latest_version, "version_id_generator": False}
 
 
 class PrescriptionVersion(Base):
