@@ -112,7 +112,7 @@ export function patientFormPage(main, patient) {
         affected_side: f.affected_side.value, contraindications: f.contraindications.value, notes: f.notes.value,
       };
       try {
-        const saved = patient ? await patch(`/patients/${patient.id}`, body) : await post("/patients", body);
+        const saved = patient ? await patch(`/patients/${patient.id}`, body, { version: patient.version }) : await post("/patients", body);
         clearErrors("form");
         banner("info", `Patient ${saved.name} ${patient ? "saved" : "created"}.`);
         go(`#/patients/${saved.id}`);
@@ -202,7 +202,7 @@ async function archivePatient(patient) {
   });
   if (!ok) return;
   try {
-    await patch(`/patients/${patient.id}`, { archived: archiving });
+    await patch(`/patients/${patient.id}`, { archived: archiving }, { version: patient.version });
     clearErrors("form");
     banner("info", archiving ? `${patient.name} archived.` : `${patient.name} restored.`);
     go(`#/patients/${patient.id}`);
@@ -431,7 +431,7 @@ export async function prescriptionPage(main, prescriptionId, params) {
         if (!ok) return;
       }
       try {
-        const saved = existing ? await put(`/prescriptions/${existing.id}`, body) : await post("/prescriptions", { patient_id: patientId, ...body });
+        const saved = existing ? await put(`/prescriptions/${existing.id}`, body, { version: existing.latest_version }) : await post("/prescriptions", { patient_id: patientId, ...body });
         clearErrors("form");
         banner("info", `Prescription “${saved.name}” saved as version ${saved.latest_version}.`);
         go(`#/prescriptions/${saved.id}`);

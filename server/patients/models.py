@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, ClassVar
 
 from sqlalchemy import CheckConstraint, Date, Float, ForeignKey, String, Text, event
 from sqlalchemy.orm import Mapped, mapped_column
@@ -43,7 +42,7 @@ class Patient(Base):
     version: Mapped[int] = mapped_column(default=1, server_default="1")
     updated_by_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"), default=None)
 
-    __mapper_args__: ClassVar[dict[str, Any]] = {"version_id_col": version}
+    __mapper_args__ = {"version_id_col": version}  # noqa: RUF012 (SQLAlchemy reads it from the class)
 
 
 class CareTeamMember(Base):

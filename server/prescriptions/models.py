@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, ClassVar
+from typing import Any
 
 from sqlalchemy import JSON, ForeignKey, String, Text, UniqueConstraint
 from sqlalchemy.orm import Mapped, mapped_column, relationship
@@ -27,7 +27,7 @@ class Prescription(Base):
 
     # Optimistic concurrency: a revision's UPDATE is `... WHERE latest_version = <the one read>`, so of two
     # revisions based on one version the second writes nothing (the service sets the new number itself).
-    __mapper_args__: ClassVar[dict[str, Any]] = {"version_id_col": latest_version, "version_id_generator": False}
+    __mapper_args__ = {"version_id_col": latest_version, "version_id_generator": False}  # noqa: RUF012
 
 
 class PrescriptionVersion(Base):
