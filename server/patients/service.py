@@ -40,7 +40,8 @@ def create_patient(*, session: Session, data: PatientCreate, actor_id: int) -> P
     session.add(patient)
     session.flush()
     audit.record(session=session, user_id=actor_id, action="create", resource_type="patient", resource_id=patient.id)
-    join_care_team(session=session, patient_id=patient.id, user_id=actor_id, actor_id=actor_id, reason="created")
+    # The creator joins the care team; the "create" entry above records that already.
+    session.add(CareTeamMember(patient_id=patient.id, user_id=actor_id, added_by_id=actor_id))
     return patient
 
 
