@@ -89,6 +89,7 @@ export const get = (path) => request("GET", path);
 export const post = (path, body) => request("POST", path, body);
 export const patch = (path, body, options) => request("PATCH", path, body, options);
 export const put = (path, body, options) => request("PUT", path, body, options);
+export const del = (path) => request("DELETE", path);
 
 export function query(params) {
   const search = new URLSearchParams();

@@ -1,5 +1,5 @@
 // Login, patients, patient profile, prescription editor, schedule week view and session history.
-import { get, patch, post, put, query } from "./api.js";
+import { del, get, patch, post, put, query } from "./api.js";
 import { protocolByKey } from "./protocols.js";
 import { staticChart } from "./charts.js";
 import { CUEING_WORDS, OUTCOME_WORDS, rejectionWords, words } from "./language.js";
@@ -156,6 +156,7 @@ export async function patientPage(main, patientId) {
       h("button.secondary", { type: "button", onclick: () => archivePatient(patient) }, patient.archived_at ? "Restore from archive" : "Archive patient"),
       progressReportLink(patientId),
       h("a.button", { href: `#/protocols?patient=${patientId}` }, "Start from a protocol")),
+    careTeamPanel(patientId),
     h("h2", {}, "Prescriptions"),
     h("div.row", {}, h("a.button.primary", { href: `#/prescriptions/new?patient=${patientId}` }, "New prescription"),
       h("a.button", { href: `#/schedule?patient=${patientId}` }, "Schedule a session")),
@@ -179,6 +180,39 @@ export async function patientPage(main, patientId) {
     main.append(h("p.muted", {}, "No run with force-plate data yet: the trend appears after the first session."));
   }
   main.append(h("h2", {}, "Session history"), await sessionsTable(bookings.slice().reverse()));
+}
+
+// Who may see and change this record besides the admins (docs/service.md): members and admins remove,
+// admins (who see the accounts) add a colleague for cover or a handover.
+function careTeamPanel(patientId) {
+  const panel = h("div.panel#care-team", { "aria-live": "polite" }, h("strong", {}, "Care team: "), "…");
+  const load = async () => {
+    const [members, accounts] = await Promise.all([
+      get(`/patients/${patientId}/care-team`),
+      get("/users").catch(() => null), // admins only
+    ]);
+    const remove = async (member) => {
+      const ok = await confirmDialog({ title: `Remove ${member.full_name || member.username} from the care team?`,
+        body: "They will no longer see or change this patient's record, prescriptions, sessions and runs.", ok: "Remove" });
+      if (!ok) return;
+      try { await del(`/patients/${patientId}/care-team/${member.user_id}`); await load(); } catch (error) { showError(error, "care-team"); }
+    };
+    const memberIds = new Set(members.map((m) => m.user_id));
+    const candidates = (accounts || []).filter((a) => a.is_active && a.role === "therapist" && !memberIds.has(a.id));
+    const choice = h("select", { "aria-label": "Clinician to add to the care team" },
+      candidates.map((a) => h("option", { value: String(a.id) }, a.full_name || a.username)));
+    const add = async () => {
+      try { await post(`/patients/${patientId}/care-team`, { user_id: Number(choice.value) }); clearErrors("care-team"); await load(); } catch (error) { showError(error, "care-team"); }
+    };
+    panel.replaceChildren(h("strong", {}, "Care team: "),
+      members.length ? members.map((m) => h("span.member", {}, m.full_name || m.username, " ",
+        h("button.secondary", { type: "button", onclick: () => remove(m), "aria-label": `Remove ${m.full_name || m.username}` }, "×"), " "))
+        : h("span.muted", {}, "nobody yet (admins only)"),
+      accounts === null ? h("span.muted", {}, " An admin adds a colleague for cover or a handover.")
+        : candidates.length ? h("span.row", {}, choice, h("button", { type: "button", onclick: add }, "Add to care team")) : "");
+  };
+  load().catch((error) => showError(error, "care-team"));
+  return panel;
 }
 
 // The progress report over a period (both dates optional, inclusive).
