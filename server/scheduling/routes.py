@@ -12,7 +12,7 @@ from pydantic import AwareDatetime, Field
 
 from server.api_types import MAX_ID, IdPath, Limit, Offset, ResponseModel
 from server.audit import service as audit
-from server.auth.access import ObjectAccess, patients_in_care, require_patient
+from server.auth.access import ObjectAccess, patients_in_care, require_object, require_patient
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.scheduling import service
@@ -103,6 +103,7 @@ def create_sessions(
     """Books one session, or every occurrence of a recurring series (all or none). A series keeps the
     first occurrence's clinic-local wall time; one that would fall in a DST gap or overlap is refused."""
     require_patient(session, user, data.patient_id)
+    require_object(session, user, "prescription_id", data.prescription_id)
     bookings = service.create_booking(session=session, data=data, actor_id=user.id, zone=zone)
     return [service.booking_out(session=session, booking=b, zone=zone) for b in bookings]
 
