@@ -376,7 +376,7 @@ def test_a_patient_changed_meanwhile_is_not_overwritten(console: Any, clinic: di
     assert colleague.status_code == 200, colleague.text
     page.get_by_role("button", name="Save patient").click()
     refusal = page.locator(".banner.error")
-    expect(refusal).to_contain_text(re.compile(r"Changed by e2e-admin at \d\d:\d\d \(now version 2\)"))
+    expect(refusal).to_contain_text(re.compile(r"Changed by e2e-admin at \d\d:\d\d( [AP]M)? \(now version 2\)"))
     expect(refusal).to_contain_text("Reload")
     stored = httpx.get(f"{clinic['api']}/patients/{created['id']}", headers=admin, timeout=30).json()
     assert stored["notes"] == "theirs"
