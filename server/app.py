@@ -17,6 +17,7 @@ import os
 from collections.abc import AsyncIterator
 from typing import Any
 from urllib.parse import urlsplit
+from zoneinfo import ZoneInfo
 
 from fastapi import APIRouter, FastAPI, Request, status
 from fastapi.encoders import jsonable_encoder
@@ -25,6 +26,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from sqlalchemy.exc import IntegrityError, InternalError, OperationalError
+from sqlalchemy.orm.exc import StaleDataError
 from starlette.datastructures import Headers
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
@@ -34,8 +36,16 @@ from server.auth.dependencies import AuthState
 from server.auth.safe_commands import LoginCache
 from server.auth.security import TokenSigner
 from server.auth.throttle import LoginThrottle
+from server.concurrency import etag
 from server.db import Database, create_database_engine, load_models, refused_write_reason, upgrade_database
-from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
+from server.errors import (
+    ConflictError,
+    InvalidFieldError,
+    NotFoundError,
+    PreconditionRequiredError,
+    StaleVersionError,
+    WorkerUnavailableError,
+)
 from server.exports.jobs import ExportJobs
 from server.file_modes import private_directory
 from server.observability.health import DatabaseProbe
@@ -89,6 +99,28 @@ def _install_access_log_redaction() -> None:
         access_logger.addFilter(RedactQueryStrings())
 
 
+def stale_version_response(error: StaleVersionError, zone: ZoneInfo) -> JSONResponse:
+    """412 naming the current version, who changed it and when (clinic time): what the console shows."""
+    who = f" by {error.changed_by}" if error.changed_by else ""
+    when = (
+        f" at {error.changed_at.astimezone(zone):%H:%M} ({error.changed_at.astimezone(zone):%Y-%m-%d})"
+        if (error.changed_at is not None)
+        else ""
+    )
+    detail = (
+        f"{error.resource} {error.resource_id} was changed{who}{when}: it is now version {error.current}, your "
+        f"change was based on version {error.expected}. Nothing was written: reload it and make your change again."
+    )
+    body = {
+        "detail": detail,
+        "current_version": error.current,
+        "changed_by": error.changed_by,
+        "changed_at": error.changed_at.isoformat() if error.changed_at is not None else None,
+    }
+    headers = {"ETag": etag(error.current)} if error.current is not None else None
+    return JSONResponse(body, status_code=status.HTTP_412_PRECONDITION_FAILED, headers=headers)
+
+
 def _error_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def unprocessable(_request: Request, error: RequestValidationError) -> JSONResponse:
@@ -119,6 +151,23 @@ def _error_handlers(app: FastAPI) -> None:
             ]
         )
         return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+
+    @app.exception_handler(PreconditionRequiredError)
+    async def precondition_required(_request: Request, error: PreconditionRequiredError) -> JSONResponse:
+        return JSONResponse({"detail": str(error)}, status_code=status.HTTP_428_PRECONDITION_REQUIRED)
+
+    @app.exception_handler(StaleVersionError)
+    async def stale_version(_request: Request, error: StaleVersionError) -> JSONResponse:
+        return stale_version_response(error, app.state.settings.clinic_zone())
+
+    @app.exception_handler(StaleDataError)
+    async def stale_data(_request: Request, _error: StaleDataError) -> JSONResponse:
+        # Two changes based on one version raced past the check; the database let only the first through.
+        return JSONResponse(
+            {"detail": "the record was changed by someone else at the same moment: nothing was written; reload it "
+             "and make your change again", "current_version": None},
+            status_code=status.HTTP_412_PRECONDITION_FAILED,
+        )  # fmt: skip
 
     @app.exception_handler(WorkerUnavailableError)
     async def no_worker(_request: Request, error: WorkerUnavailableError) -> JSONResponse:

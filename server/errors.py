@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import datetime as dt
+
 
 class NotFoundError(LookupError):
     def __init__(self, resource: str, resource_id: object) -> None:
@@ -30,3 +32,38 @@ class InvalidFieldError(ValueError):
 
 class WorkerUnavailableError(RuntimeError):
     """Run control asked for while no real-time worker (robot) is connected."""
+
+
+class PreconditionRequiredError(RuntimeError):
+    """A change of a versioned record sent without the version it was based on (428)."""
+
+    def __init__(self, resource: str, resource_id: object) -> None:
+        self.resource = resource
+        self.resource_id = resource_id
+        super().__init__(
+            f"{resource} {resource_id}: send the version your change is based on, as the If-Match header with the "
+            f'ETag of your GET (e.g. If-Match: "3") or as expected_version in the body, so that no one else\'s '
+            "change is overwritten unseen"
+        )
+
+
+class StaleVersionError(RuntimeError):
+    """A change based on a version that is no longer the current one (412): someone else changed it since."""
+
+    def __init__(
+        self,
+        resource: str,
+        resource_id: object,
+        *,
+        expected: int,
+        current: int | None,
+        changed_by: str | None = None,
+        changed_at: dt.datetime | None = None,
+    ) -> None:
+        self.resource = resource
+        self.resource_id = resource_id
+        self.expected = expected
+        self.current = current
+        self.changed_by = changed_by
+        self.changed_at = changed_at
+        super().__init__(f"{resource} {resource_id} changed since version {expected}")

@@ -4,14 +4,21 @@ export const API = "/api/v1";
 export const CSRF_HEADER = "X-Requested-With";
 
 export class ApiError extends Error {
-  constructor(status, detail) {
+  constructor(status, detail, body = {}) {
     super(describeDetail(detail) || `HTTP ${status}`);
     this.status = status;
     this.detail = detail;
     this.fieldErrors = fieldErrors(detail);
     this.fieldItems = fieldItems(detail);
+    // 412: someone changed the record since this page read it (docs/service.md, optimistic concurrency).
+    this.conflict = status === 412
+      ? { currentVersion: body.current_version ?? null, changedBy: body.changed_by ?? null, changedAt: body.changed_at ?? null }
+      : null;
   }
 }
+
+// The version a change is based on, as the server's ETag writes it (If-Match).
+export const ifMatch = (version) => `"${version}"`;
 
 // FastAPI 422 bodies: {detail: [{loc: ["body", "segments", 0, "cue", ...], msg}]} -> {"segments[0].cue": msg}
 export function fieldErrors(detail) {
@@ -50,9 +57,11 @@ function describeDetail(detail) {
   return detail ? JSON.stringify(detail) : "";
 }
 
-export async function request(method, path, body, { raw = false } = {}) {
+export async function request(method, path, body, { raw = false, version } = {}) {
   // The custom header proves the request comes from the console's own pages (CSRF check, docs/service.md).
   const options = { method, credentials: "same-origin", headers: { [CSRF_HEADER]: "ssp-rehab" } };
+  // A change of a versioned record (patient, prescription) names the version it was based on.
+  if (version !== undefined) options.headers["If-Match"] = ifMatch(version);
   if (body !== undefined) {
     options.headers["Content-Type"] = "application/json";
     options.body = JSON.stringify(body);
@@ -65,8 +74,9 @@ export async function request(method, path, body, { raw = false } = {}) {
   }
   if (!response.ok) {
     let detail = response.statusText;
-    try { detail = (await response.json()).detail; } catch (_) { /* not JSON */ }
-    const error = new ApiError(response.status, detail);
+    let answer = {};
+    try { answer = await response.json(); detail = answer.detail; } catch (_) { /* not JSON */ }
+    const error = new ApiError(response.status, detail, answer || {});
     if (response.status === 401) window.dispatchEvent(new CustomEvent("ssp:unauthorised"));
     throw error;
   }
@@ -77,8 +87,9 @@ export async function request(method, path, body, { raw = false } = {}) {
 
 export const get = (path) => request("GET", path);
 export const post = (path, body) => request("POST", path, body);
-export const patch = (path, body) => request("PATCH", path, body);
-export const put = (path, body) => request("PUT", path, body);
+export const patch = (path, body, options) => request("PATCH", path, body, options);
+export const put = (path, body, options) => request("PUT", path, body, options);
+export const del = (path) => request("DELETE", path);
 
 export function query(params) {
   const search = new URLSearchParams();

@@ -1,5 +1,5 @@
 // Login, patients, patient profile, prescription editor, schedule week view and session history.
-import { get, patch, post, put, query } from "./api.js";
+import { del, get, patch, post, put, query } from "./api.js";
 import { protocolByKey } from "./protocols.js";
 import { staticChart } from "./charts.js";
 import { CUEING_WORDS, OUTCOME_WORDS, rejectionWords, words } from "./language.js";
@@ -112,7 +112,7 @@ export function patientFormPage(main, patient) {
         affected_side: f.affected_side.value, contraindications: f.contraindications.value, notes: f.notes.value,
       };
       try {
-        const saved = patient ? await patch(`/patients/${patient.id}`, body) : await post("/patients", body);
+        const saved = patient ? await patch(`/patients/${patient.id}`, body, { version: patient.version }) : await post("/patients", body);
         clearErrors("form");
         banner("info", `Patient ${saved.name} ${patient ? "saved" : "created"}.`);
         go(`#/patients/${saved.id}`);
@@ -156,6 +156,7 @@ export async function patientPage(main, patientId) {
       h("button.secondary", { type: "button", onclick: () => archivePatient(patient) }, patient.archived_at ? "Restore from archive" : "Archive patient"),
       progressReportLink(patientId),
       h("a.button", { href: `#/protocols?patient=${patientId}` }, "Start from a protocol")),
+    careTeamPanel(patientId),
     h("h2", {}, "Prescriptions"),
     h("div.row", {}, h("a.button.primary", { href: `#/prescriptions/new?patient=${patientId}` }, "New prescription"),
       h("a.button", { href: `#/schedule?patient=${patientId}` }, "Schedule a session")),
@@ -181,6 +182,39 @@ export async function patientPage(main, patientId) {
   main.append(h("h2", {}, "Session history"), await sessionsTable(bookings.slice().reverse()));
 }
 
+// Who may see and change this record besides the admins (docs/service.md): members and admins remove,
+// admins (who see the accounts) add a colleague for cover or a handover.
+function careTeamPanel(patientId) {
+  const panel = h("div.panel#care-team", { "aria-live": "polite" }, h("strong", {}, "Care team: "), "…");
+  const load = async () => {
+    const [members, accounts] = await Promise.all([
+      get(`/patients/${patientId}/care-team`),
+      get("/users").catch(() => null), // admins only
+    ]);
+    const remove = async (member) => {
+      const ok = await confirmDialog({ title: `Remove ${member.full_name || member.username} from the care team?`,
+        body: "They will no longer see or change this patient's record, prescriptions, sessions and runs.", ok: "Remove" });
+      if (!ok) return;
+      try { await del(`/patients/${patientId}/care-team/${member.user_id}`); await load(); } catch (error) { showError(error, "care-team"); }
+    };
+    const memberIds = new Set(members.map((m) => m.user_id));
+    const candidates = (accounts || []).filter((a) => a.is_active && a.role === "therapist" && !memberIds.has(a.id));
+    const choice = h("select", { "aria-label": "Clinician to add to the care team" },
+      candidates.map((a) => h("option", { value: String(a.id) }, a.full_name || a.username)));
+    const add = async () => {
+      try { await post(`/patients/${patientId}/care-team`, { user_id: Number(choice.value) }); clearErrors("care-team"); await load(); } catch (error) { showError(error, "care-team"); }
+    };
+    panel.replaceChildren(h("strong", {}, "Care team: "),
+      members.length ? members.map((m) => h("span.member", {}, m.full_name || m.username, " ",
+        h("button.secondary", { type: "button", onclick: () => remove(m), "aria-label": `Remove ${m.full_name || m.username}` }, "×"), " "))
+        : h("span.muted", {}, "nobody yet (admins only)"),
+      accounts === null ? h("span.muted", {}, " An admin adds a colleague for cover or a handover.")
+        : candidates.length ? h("span.row", {}, choice, h("button", { type: "button", onclick: add }, "Add to care team")) : "");
+  };
+  load().catch((error) => showError(error, "care-team"));
+  return panel;
+}
+
 // The progress report over a period (both dates optional, inclusive).
 function progressReportLink(patientId) {
   const from = h("input", { type: "date", "aria-label": "Progress report from" });
@@ -202,7 +236,7 @@ async function archivePatient(patient) {
   });
   if (!ok) return;
   try {
-    await patch(`/patients/${patient.id}`, { archived: archiving });
+    await patch(`/patients/${patient.id}`, { archived: archiving }, { version: patient.version });
     clearErrors("form");
     banner("info", archiving ? `${patient.name} archived.` : `${patient.name} restored.`);
     go(`#/patients/${patient.id}`);
@@ -431,7 +465,7 @@ export async function prescriptionPage(main, prescriptionId, params) {
         if (!ok) return;
       }
       try {
-        const saved = existing ? await put(`/prescriptions/${existing.id}`, body) : await post("/prescriptions", { patient_id: patientId, ...body });
+        const saved = existing ? await put(`/prescriptions/${existing.id}`, body, { version: existing.latest_version }) : await post("/prescriptions", { patient_id: patientId, ...body });
         clearErrors("form");
         banner("info", `Prescription “${saved.name}” saved as version ${saved.latest_version}.`);
         go(`#/prescriptions/${saved.id}`);

@@ -71,6 +71,12 @@ export async function schedulePage(main, params) {
 }
 
 function bookingCard(booking, inConflict) {
+  if (booking.in_care === false) {
+    // Another care team's patient: the week shows only that the robot and the therapist are busy.
+    return h(`div.booking.busy.${booking.status}`, { dataset: { bookingId: String(booking.id) }, title: "Not a patient in your care" },
+      h("strong", {}, `${wallTime(booking.start_local)}–${wallTime(booking.end_local)}`), h("br"), "Busy (another care team)",
+      h("br"), `${booking.robot} · ${booking.status}`);
+  }
   const movable = booking.status === "scheduled" && !booking.run_count; // started, finished or cancelled ones stay put
   return h(`button.booking.${booking.status}${inConflict ? ".conflict" : ""}`, {
     type: "button", onclick: () => editBooking(booking), draggable: movable ? "true" : undefined,

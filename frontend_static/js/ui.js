@@ -60,6 +60,7 @@ export function clearBanner(key) { bannerHost().querySelectorAll(`[data-key="${k
 export function clearErrors(...keys) { keys.forEach(clearBanner); }
 export function showError(error, key) { return banner("error", errorText(error), { key }); }
 export function errorText(error) {
+  if (error && error.conflict) return conflictText(error.conflict);
   if (error && error.status === 503) return `Robot offline: ${error.message}`;
   if (error && error.status === 409) return `Not possible now: ${conflictWords(error.message)}`;
   if (error && error.status === 422) {
@@ -67,6 +68,14 @@ export function errorText(error) {
     return `Please check: ${items.map((item) => fieldMessage(item)).join(" ") || error.message}`;
   }
   return `Error: ${error && error.message ? error.message : error}`;
+}
+
+// 412: "Changed by X at HH:MM (now version N): not saved. Reload …" in the clinic's time as the page shows it.
+export function conflictText({ changedBy, changedAt, currentVersion }) {
+  const when = changedAt ? fmtTime(changedAt) : null;
+  const who = changedBy || "someone else";
+  return `Changed by ${who}${when ? ` at ${when}` : ""}${currentVersion ? ` (now version ${currentVersion})` : ""}` +
+    ": your change was not saved. Reload the page to see theirs, then make your change again.";
 }
 
 // What the screen shows of an input's value: its label, unit and the factor from the API's SI value.

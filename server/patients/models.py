@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import CheckConstraint, Date, Float, String, Text, event
+from sqlalchemy import CheckConstraint, Date, Float, ForeignKey, String, Text, event
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base, UTCDateTime, utc_now
@@ -37,6 +37,24 @@ class Patient(Base):
     # Archived records leave the lists but stay whole: runs and prescriptions keep pointing at them.
     archived_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, default=None)
     search_key: Mapped[str] = mapped_column(String(300), default="", index=True)
+    # Optimistic concurrency (docs/service.md): every UPDATE is `... WHERE version = <the version read>`,
+    # so of two changes based on one version the second touches no row and is refused (412).
+    version: Mapped[int] = mapped_column(default=1, server_default="1")
+    updated_by_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"), default=None)
+
+    __mapper_args__ = {"version_id_col": version}  # noqa: RUF012 (SQLAlchemy reads it from the class)
+
+
+class CareTeamMember(Base):
+    """A clinician who may read and change one patient's record and everything hanging off it
+    (docs/service.md, "Who may see and change what")."""
+
+    __tablename__ = "care_team_members"
+
+    patient_id: Mapped[int] = mapped_column(ForeignKey("patients.id", ondelete="CASCADE"), primary_key=True)
+    user_id: Mapped[int] = mapped_column(ForeignKey("users.id", ondelete="CASCADE"), primary_key=True, index=True)
+    added_by_id: Mapped[int | None] = mapped_column(ForeignKey("users.id", ondelete="SET NULL"), default=None)
+    added_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utc_now)
 
 
 @event.listens_for(Patient, "before_insert")

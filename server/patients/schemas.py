@@ -67,8 +67,16 @@ class PatientUpdate(RequestModel):
     archived: bool | None = Field(
         None, description="true archives the record (it leaves the lists), false restores it."
     )
+    expected_version: int | None = Field(
+        None,
+        ge=1,
+        le=2**31 - 1,
+        description="The version this change is based on, for clients that cannot send If-Match (one is needed).",
+    )
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{"body_mass_kg": 63.0, "notes": "reassessed"}]})
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"body_mass_kg": 63.0, "notes": "reassessed", "expected_version": 1}]}
+    )
 
     _check_birth = field_validator("date_of_birth")(_birth_date_in_range)
 
@@ -88,3 +96,19 @@ class PatientOut(ResponseModel):
     created_at: dt.datetime
     updated_at: dt.datetime
     archived_at: dt.datetime | None = None
+    version: int = Field(description="Changes send it back (If-Match or expected_version); the ETag carries it too.")
+
+
+class CareTeamAdd(RequestModel):
+    user_id: int = Field(ge=1, le=2**31 - 1, description="The clinician to add to the patient's care team.")
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"user_id": 2}]})
+
+
+class CareTeamMemberOut(ResponseModel):
+    user_id: int
+    username: str
+    full_name: str
+    role: str
+    added_by_id: int | None
+    added_at: dt.datetime

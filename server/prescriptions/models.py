@@ -25,6 +25,10 @@ class Prescription(Base):
         back_populates="prescription", order_by="PrescriptionVersion.version", lazy="selectin"
     )
 
+    # Optimistic concurrency: a revision's UPDATE is `... WHERE latest_version = <the one read>`, so of two
+    # revisions based on one version the second writes nothing (the service sets the new number itself).
+    __mapper_args__ = {"version_id_col": latest_version, "version_id_generator": False}  # noqa: RUF012
+
 
 class PrescriptionVersion(Base):
     __tablename__ = "prescription_versions"

@@ -36,6 +36,7 @@ from core.plan.timeline import prescription_timeline
 from core.robot import TwinRobot
 from core.vestibular import VestibularModel
 from server.api_types import MAX_ID, RequestModel
+from server.auth.access import require_patient
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.errors import InvalidFieldError
@@ -189,6 +190,7 @@ def preview_prescription(
     """Plots-ready preview of the segments as the robot would play them, and whether the robot accepts them."""
     patient = None
     if data.patient_id is not None:
+        require_patient(session, user, data.patient_id)
         record = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
         patient = {"body_mass_kg": record.body_mass_kg, "height_m": record.height_m}
     return preview_process(request).preview(

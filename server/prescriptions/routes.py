@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Query, Request, status
+from fastapi import APIRouter, Depends, Path, Query, Request, Response, status
 
 from server.api_types import MAX_ID, IdPath, Limit, Offset
+from server.auth.access import ObjectAccess, require_patient
 from server.auth.dependencies import CurrentUser, current_user
+from server.concurrency import IfMatch, expected_version, with_etag
 from server.db import SessionDep
 from server.prescriptions import service
 from server.prescriptions.models import Prescription
@@ -18,7 +20,7 @@ from server.prescriptions.schemas import (
     PrescriptionVersionOut,
 )
 
-router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
+router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user), ObjectAccess])
 VersionPath = Annotated[int, Path(ge=1, le=MAX_ID)]
 
 
@@ -42,35 +44,64 @@ def _robot(request: Request) -> dict[str, Any]:
 @router.get("", response_model=list[PrescriptionOut])
 def list_prescriptions(
     session: SessionDep,
+    user: CurrentUser,
     patient_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     limit: Limit = 100,
     offset: Offset = 0,
 ) -> list[PrescriptionOut]:
-    prescriptions = service.list_prescriptions(session=session, patient_id=patient_id, limit=limit, offset=offset)
+    prescriptions = service.list_prescriptions(
+        session=session, actor=user, patient_id=patient_id, limit=limit, offset=offset
+    )
     return [_out(p) for p in prescriptions]
 
 
 @router.post("", response_model=PrescriptionOut, status_code=status.HTTP_201_CREATED)
 def create_prescription(
-    data: PrescriptionCreate, request: Request, session: SessionDep, user: CurrentUser
+    data: PrescriptionCreate, request: Request, session: SessionDep, user: CurrentUser, response: Response
 ) -> PrescriptionOut:
+    require_patient(session, user, data.patient_id)
     prescription = service.create_prescription(session=session, data=data, actor_id=user.id, **_robot(request))
+    with_etag(response, prescription.latest_version)
     return _out(prescription)
 
 
 @router.get("/{prescription_id}", response_model=PrescriptionOut)
-def get_prescription(prescription_id: IdPath, session: SessionDep) -> PrescriptionOut:
-    return _out(service.get_prescription(session=session, prescription_id=prescription_id))
+def get_prescription(prescription_id: IdPath, session: SessionDep, response: Response) -> PrescriptionOut:
+    """The prescription and its current version, whose number is the `ETag` (send it as `If-Match` to revise)."""
+    prescription = service.get_prescription(session=session, prescription_id=prescription_id)
+    with_etag(response, prescription.latest_version)
+    return _out(prescription)
 
 
-@router.put("/{prescription_id}", response_model=PrescriptionOut)
+@router.put(
+    "/{prescription_id}",
+    response_model=PrescriptionOut,
+    responses={
+        412: {"description": "Revised by someone else since the version sent: names the current one"},
+        428: {"description": "No If-Match (or expected_version): the version the revision is based on is needed"},
+    },
+)
 def revise_prescription(
-    prescription_id: IdPath, data: PrescriptionRevise, request: Request, session: SessionDep, user: CurrentUser
+    prescription_id: IdPath,
+    data: PrescriptionRevise,
+    request: Request,
+    session: SessionDep,
+    user: CurrentUser,
+    response: Response,
+    if_match: IfMatch = None,
 ) -> PrescriptionOut:
-    """Editing creates a new version; sessions keep referring to the version they were scheduled with."""
+    """Editing creates a new version; sessions keep referring to the version they were scheduled with. Only
+    if the current version is still the one sent (`If-Match` or `expected_version`), else 412."""
+    based_on = expected_version(if_match, data.expected_version, resource="prescription", resource_id=prescription_id)
     prescription = service.revise_prescription(
-        session=session, prescription_id=prescription_id, data=data, actor_id=user.id, **_robot(request)
+        session=session,
+        prescription_id=prescription_id,
+        data=data,
+        actor_id=user.id,
+        expected_version=based_on,
+        **_robot(request),
     )
+    with_etag(response, prescription.latest_version)
     return _out(prescription)
 
 

@@ -36,9 +36,17 @@ class PrescriptionRevise(PrescriptionBody, RequestModel):
 
     name: Name | None = None
     note: LongText = ""
+    expected_version: int | None = Field(
+        None,
+        ge=1,
+        le=2**31 - 1,
+        description="The version this revision is based on, for clients that cannot send If-Match (one is needed).",
+    )
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"segments": [EXAMPLE_SEGMENT], "note": "longer washout after review"}]}
+        json_schema_extra={
+            "examples": [{"segments": [EXAMPLE_SEGMENT], "note": "longer washout after review", "expected_version": 1}]
+        }
     )
 
 

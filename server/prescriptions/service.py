@@ -12,10 +12,11 @@ from core.plan.prescription import PrescriptionBody, PrescriptionError
 from core.robot import TwinRobot
 from server.audit import service as audit
 from server.db import writes
-from server.errors import InvalidFieldError, NotFoundError
+from server.errors import InvalidFieldError, NotFoundError, StaleVersionError
 from server.patients.service import find_patient
 from server.prescriptions.models import Prescription, PrescriptionVersion
 from server.prescriptions.schemas import PrescriptionCreate, PrescriptionRevise
+from server.users.models import User
 
 KEPT_ON_REVISION = ("cueing", "seed")
 
@@ -84,8 +85,21 @@ def revise_prescription(
     twin: TwinRobot,
     control_rate_hz: int,
     actor_id: int,
+    expected_version: int,
 ) -> Prescription:
+    """Adds version n+1, only if n is still `expected_version` (else 412 naming who revised it and when)."""
     prescription = get_prescription(session=session, prescription_id=prescription_id)
+    if prescription.latest_version != expected_version:
+        current_version = latest(prescription)
+        author = session.get(User, current_version.created_by_id) if current_version.created_by_id else None
+        raise StaleVersionError(
+            "prescription",
+            prescription.id,
+            expected=expected_version,
+            current=prescription.latest_version,
+            changed_by=(author.full_name or author.username) if author is not None else None,
+            changed_at=current_version.created_at,
+        )
     # A revision that sends only new segments keeps the current cueing algorithm and seed.
     current = latest(prescription).content
     kept = {name: current[name] for name in KEPT_ON_REVISION if name not in data.model_fields_set and name in current}
@@ -110,9 +124,12 @@ def revise_prescription(
 
 
 def list_prescriptions(
-    *, session: Session, patient_id: int | None = None, limit: int = 100, offset: int = 0
+    *, session: Session, actor: User, patient_id: int | None = None, limit: int = 100, offset: int = 0
 ) -> list[Prescription]:
-    query = select(Prescription).order_by(Prescription.id).limit(limit).offset(offset)
+    from server.auth.access import restrict_to_care
+
+    query = restrict_to_care(select(Prescription), Prescription.patient_id, actor)
+    query = query.order_by(Prescription.id).limit(limit).offset(offset)
     if patient_id is not None:
         query = query.where(Prescription.patient_id == patient_id)
     return list(session.scalars(query))

@@ -11,6 +11,7 @@ from sqlalchemy.orm import Session
 from core.robot import TwinRobot
 from server.api_types import IdPath
 from server.audit import service as audit
+from server.auth.access import ObjectAccess
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep, writes
 from server.errors import InvalidFieldError
@@ -18,7 +19,7 @@ from server.patients.service import read_patient
 from server.reports.facts import RunFacts, progress_rows, run_facts
 from server.reports.pdf import progress_report_pdf, run_report_pdf
 
-router = APIRouter(tags=["reports"], dependencies=[Depends(current_user)])
+router = APIRouter(tags=["reports"], dependencies=[Depends(current_user), ObjectAccess])
 PDF: dict[int | str, dict[str, Any]] = {200: {"content": {"application/pdf": {}}, "description": "The report (PDF)"}}
 
 

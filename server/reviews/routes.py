@@ -7,12 +7,14 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query
 
 from server.api_types import NO_NUL_PATTERN, IdPath
+from server.auth.access import ObjectAccess, require_object
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
+from server.errors import NotFoundError
 from server.reviews import service
 from server.reviews.schemas import AcknowledgementIn, AcknowledgementOut, RunNotesIn, RunNotesOut, RunReviewOut
 
-router = APIRouter(tags=["reviews"], dependencies=[Depends(current_user)])
+router = APIRouter(tags=["reviews"], dependencies=[Depends(current_user), ObjectAccess])
 RobotName = Annotated[str, Query(min_length=1, max_length=64, pattern=NO_NUL_PATTERN, description="Robot name.")]
 
 
@@ -42,6 +44,14 @@ def save_run_notes(run_id: IdPath, data: RunNotesIn, session: SessionDep, user: 
 
 
 @router.get("/reviews/pending", response_model=RunReviewOut | None)
-def pending_acknowledgement(robot: RobotName, session: SessionDep) -> RunReviewOut | None:
-    """The robot's last run if it ended in a fall, fault or limit stop not yet acknowledged; else null."""
-    return service.pending_on_robot(session=session, robot=robot)
+def pending_acknowledgement(robot: RobotName, session: SessionDep, user: CurrentUser) -> RunReviewOut | None:
+    """The robot's last run if it ended in a fall, fault or limit stop not yet acknowledged; else null. Every
+    user of the robot sees that it is pending; its notes only the run's care team."""
+    pending = service.pending_on_robot(session=session, robot=robot)
+    if pending is None:
+        return None
+    try:
+        require_object(session, user, "run_id", pending.run_id)
+    except NotFoundError:
+        return pending.model_copy(update={"notes": RunNotesOut(run_id=pending.run_id, author_id=None, updated_at=None)})
+    return pending

@@ -12,13 +12,13 @@ from pydantic import AwareDatetime, Field
 
 from server.api_types import MAX_ID, IdPath, Limit, Offset, ResponseModel
 from server.audit import service as audit
+from server.auth.access import ObjectAccess, patients_in_care, require_object, require_patient
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.scheduling import service
 from server.scheduling.schemas import RobotName, ScheduleCreate, ScheduledSessionOut, ScheduleUpdate, WeekOut
-from server.users.models import User
 
-router = APIRouter(tags=["scheduling"], dependencies=[Depends(current_user)])
+router = APIRouter(tags=["scheduling"], dependencies=[Depends(current_user), ObjectAccess])
 # Calendar apps cannot log in: the secret in the path is the credential, one per therapist, revocable.
 public_router = APIRouter(tags=["scheduling"])
 OptionalId = Annotated[int | None, Query(ge=1, le=MAX_ID)]
@@ -34,17 +34,10 @@ def clinic_zone(request: Request) -> ZoneInfo:
 ClinicZone = Annotated[ZoneInfo, Depends(clinic_zone)]
 
 
-def _own_feed_or_admin(user: User, therapist_id: int) -> None:
-    if user.role != "admin" and user.id != therapist_id:
-        raise HTTPException(
-            status.HTTP_403_FORBIDDEN,
-            detail=f"therapist_id = {therapist_id}: only that therapist or an admin may read or manage this calendar",
-        )
-
-
 @router.get("/sessions", response_model=list[ScheduledSessionOut])
 def list_sessions(
     session: SessionDep,
+    user: CurrentUser,
     zone: ClinicZone,
     start: Annotated[AwareDatetime | None, Query(alias="from", description="Bookings ending after this.")] = None,
     end: Annotated[AwareDatetime | None, Query(alias="to", description="Bookings starting before this.")] = None,
@@ -57,6 +50,7 @@ def list_sessions(
 ) -> list[ScheduledSessionOut]:
     rows = service.list_bookings(
         session=session,
+        actor=user,
         start=start,
         end=end,
         robot=robot,
@@ -81,9 +75,15 @@ def schedule_week(
 ) -> Response:
     """The clinic-local week (Monday 00:00 to Monday 00:00 in SSP_REHAB_TIMEZONE) with each booking's
     patient name and run summary: everything the week view shows, in one request."""
-    answer = service.week(session=session, day=day or dt.datetime.now(zone).date(), zone=zone, robot=robot)
+    answer = service.week(
+        session=session,
+        day=day or dt.datetime.now(zone).date(),
+        zone=zone,
+        robot=robot,
+        shown=lambda ids: patients_in_care(session, user, ids),
+    )
     # The week shows patient names, so it counts as reading those records.
-    patient_ids = sorted({b.patient_id for b in answer.bookings})
+    patient_ids = sorted({b.patient_id for b in answer.bookings if b.in_care})
     audit.record_read(
         session=session, user_id=user.id, action="list", resource_type="patient", details={"patient_ids": patient_ids}
     )
@@ -102,6 +102,8 @@ def create_sessions(
 ) -> list[ScheduledSessionOut]:
     """Books one session, or every occurrence of a recurring series (all or none). A series keeps the
     first occurrence's clinic-local wall time; one that would fall in a DST gap or overlap is refused."""
+    require_patient(session, user, data.patient_id)
+    require_object(session, user, "prescription_id", data.prescription_id)
     bookings = service.create_booking(session=session, data=data, actor_id=user.id, zone=zone)
     return [service.booking_out(session=session, booking=b, zone=zone) for b in bookings]
 
@@ -139,7 +141,6 @@ def cancel_series(
     },
 )
 def therapist_calendar(therapist_id: IdPath, session: SessionDep, user: CurrentUser, zone: ClinicZone) -> Response:
-    _own_feed_or_admin(user, therapist_id)
     body = service.therapist_calendar(session=session, therapist_id=therapist_id, product_id=PRODUCT_ID, zone=zone)
     return Response(body, media_type=CALENDAR_MEDIA_TYPE)
 
@@ -153,7 +154,6 @@ class CalendarSubscriptionOut(ResponseModel):
 @router.get("/therapists/{therapist_id}/calendar-subscription", response_model=CalendarSubscriptionOut)
 def calendar_subscription(therapist_id: IdPath, session: SessionDep, user: CurrentUser) -> CalendarSubscriptionOut:
     """Whether a subscription link exists (the link itself is shown only once, when it is issued)."""
-    _own_feed_or_admin(user, therapist_id)
     issued = service.calendar_token_issued_at(session=session, therapist_id=therapist_id)
     return CalendarSubscriptionOut(therapist_id=therapist_id, url=None, issued_at=issued)
 
@@ -167,7 +167,6 @@ def issue_calendar_subscription(
     therapist_id: IdPath, session: SessionDep, user: CurrentUser, request: Request
 ) -> CalendarSubscriptionOut:
     """A new secret subscription link for calendar apps (path under the API); any earlier link stops working."""
-    _own_feed_or_admin(user, therapist_id)
     token = service.issue_calendar_token(session=session, therapist_id=therapist_id, actor_id=user.id)
     issued = service.calendar_token_issued_at(session=session, therapist_id=therapist_id)
     url = str(request.url_for("subscribed_calendar", token=token))
@@ -176,7 +175,6 @@ def issue_calendar_subscription(
 
 @router.delete("/therapists/{therapist_id}/calendar-subscription", status_code=status.HTTP_204_NO_CONTENT)
 def revoke_calendar_subscription(therapist_id: IdPath, session: SessionDep, user: CurrentUser) -> Response:
-    _own_feed_or_admin(user, therapist_id)
     service.revoke_calendar_token(session=session, therapist_id=therapist_id, actor_id=user.id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 

@@ -129,6 +129,11 @@ class WeekBookingOut(ScheduledSessionOut):
     patient_identifier: str
     run_count: int
     last_run_outcome: str | None
+    in_care: bool = Field(
+        True,
+        description="false: the patient is not in your care; the booking shows only when the robot and "
+        "therapist are busy (no name, record number, notes or runs).",
+    )
 
 
 class WeekOut(ResponseModel):

@@ -16,7 +16,7 @@ import datetime as dt
 import hashlib
 import secrets
 import zlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 from zoneinfo import ZoneInfo
@@ -28,6 +28,7 @@ from server.audit import service as audit
 from server.db import writes
 from server.errors import ConflictError, InvalidFieldError, NotFoundError
 from server.patients.models import Patient
+from server.patients.service import join_care_team
 from server.prescriptions import service as prescriptions
 from server.prescriptions.models import PrescriptionVersion
 from server.scheduling import clinic_time
@@ -211,6 +212,10 @@ def create_booking(*, session: Session, data: ScheduleCreate, actor_id: int, zon
     ]
     session.add_all(bookings)
     session.flush()
+    # The booked therapist treats the patient, so joins the care team (a booking for a colleague hands over).
+    join_care_team(
+        session=session, patient_id=data.patient_id, user_id=therapist_id, actor_id=actor_id, reason="booked"
+    )
     for booking in bookings:
         audit.record(
             session=session,
@@ -232,6 +237,10 @@ def update_booking(
     if "therapist_id" in changes:
         _therapist(session, changes["therapist_id"])
         booking.therapist_id = changes["therapist_id"]
+        join_care_team(
+            session=session, patient_id=booking.patient_id, user_id=booking.therapist_id, actor_id=actor_id,
+            reason="booked",
+        )  # fmt: skip
     if "prescription_version" in changes:
         current = session.get(PrescriptionVersion, booking.prescription_version_id)
         assert current is not None
@@ -288,6 +297,7 @@ def cancel_series(*, session: Session, series_id: int, actor_id: int) -> list[Sc
 def list_bookings(
     *,
     session: Session,
+    actor: User,
     start: dt.datetime | None = None,
     end: dt.datetime | None = None,
     robot: str | None = None,
@@ -298,9 +308,15 @@ def list_bookings(
     offset: int = 0,
 ) -> list[tuple[ScheduledSession, int, int]]:
     """Bookings overlapping [start, end), earliest first, with their prescription id and version number."""
+    from server.auth.access import restrict_to_care
+
     query = (
         # Only the version's numbers: its content (JSON) is not needed to list bookings.
-        select(ScheduledSession, PrescriptionVersion.prescription_id, PrescriptionVersion.version)
+        restrict_to_care(
+            select(ScheduledSession, PrescriptionVersion.prescription_id, PrescriptionVersion.version),
+            ScheduledSession.patient_id,
+            actor,
+        )
         .join(PrescriptionVersion, PrescriptionVersion.id == ScheduledSession.prescription_version_id)
         .order_by(ScheduledSession.start_utc, ScheduledSession.id)
         .limit(limit)
@@ -443,8 +459,24 @@ def week_query(start: dt.datetime, end: dt.datetime, robot: str | None = None) -
     return query if robot is None else query.where(ScheduledSession.robot == robot)
 
 
-def week(*, session: Session, day: dt.date, zone: ZoneInfo, robot: str | None = None) -> WeekOut:
-    """Bookings starting in the clinic-local week holding `day`, with patient names and run summaries."""
+def _busy_only(booking: dict[str, Any]) -> dict[str, Any]:
+    """A booking of a patient outside the caller's care: when the robot and the therapist are busy, no more."""
+    return {
+        **booking, "patient_name": "", "patient_identifier": "", "notes": "", "run_count": 0,
+        "last_run_outcome": None, "in_care": False,
+    }  # fmt: skip
+
+
+def week(
+    *,
+    session: Session,
+    day: dt.date,
+    zone: ZoneInfo,
+    robot: str | None = None,
+    shown: Callable[[set[int]], set[int]] | None = None,
+) -> WeekOut:
+    """Bookings starting in the clinic-local week holding `day`, with patient names and run summaries;
+    `shown` picks the patients whose names, notes and runs the caller may see (the rest: free/busy only)."""
     start_local, end_local = clinic_time.week_bounds(day, zone)
     query = week_query(start_local, end_local, robot)
     bookings = [
@@ -457,6 +489,9 @@ def week(*, session: Session, day: dt.date, zone: ZoneInfo, robot: str | None = 
         }
         for booking, prescription_id, version, name, identifier, run_count, last_outcome in session.execute(query)
     ]
+    if shown is not None:
+        in_care = shown({b["patient_id"] for b in bookings})
+        bookings = [b if b["patient_id"] in in_care else _busy_only(b) for b in bookings]
     monday = start_local.date()
     # One validation of the whole week (in pydantic-core), not one Python call per booking.
     return WeekOut.model_validate(

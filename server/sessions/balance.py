@@ -30,6 +30,7 @@ from core.posturography import (
 )
 from core.robot import TwinRobot
 from server.api_types import IdPath
+from server.auth.access import ObjectAccess
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.errors import ConflictError, InvalidFieldError
@@ -38,7 +39,7 @@ from server.scheduling.models import ScheduledSession
 from server.sessions.logs import telemetry_columns
 from server.sessions.models import SessionEvent, SessionRun
 
-router = APIRouter(tags=["patients"], dependencies=[Depends(current_user)])
+router = APIRouter(tags=["patients"], dependencies=[Depends(current_user), ObjectAccess])
 
 MIN_LOADED_SAMPLES = 3
 LOADED_PLATES_N = 50.0  # below this both plates together carry nobody: no COP to speak of

@@ -31,6 +31,7 @@ from sqlalchemy.orm import Session
 from server import exports
 from server.api_types import MAX_ID, NO_NUL_PATTERN, IdPath
 from server.audit import service as audit
+from server.auth.access import ObjectAccess, object_access_own_session, patients_in_care, require_object
 from server.auth.dependencies import (
     AuthState,
     auth_state,
@@ -63,7 +64,7 @@ from server.users.models import User
 
 logger = logging.getLogger(__name__)
 
-router = APIRouter(tags=["sessions"], dependencies=[Depends(current_user)])
+router = APIRouter(tags=["sessions"], dependencies=[Depends(current_user), ObjectAccess])
 # Motion commands hold no database session while the daemon works: it writes the run meanwhile.
 motion_router = APIRouter(tags=["sessions"])
 # The emergency stop needs no login at all: the console page must always be able to stop motion.
@@ -196,8 +197,17 @@ def _run_out(request: Request, run_id: int) -> SessionRunOut:
         return SessionRunOut.model_validate(service.get_run(session=session, run_id=run_id))
 
 
+# Starting or resuming motion needs the patient in the caller's care; pause and stop never ask (a stop is
+# never refused). A separate dependency, in its own database session, so that it composes with however the
+# motion routes authenticate.
+IN_CARE_FOR_MOTION = [Depends(object_access_own_session)]
+
+
 @motion_router.post(
-    "/sessions/{session_id}/start", response_model=SessionRunOut, responses={503: {"description": "No robot"}}
+    "/sessions/{session_id}/start",
+    response_model=SessionRunOut,
+    responses={503: {"description": "No robot"}},
+    dependencies=IN_CARE_FOR_MOTION,
 )
 def start_session(session_id: IdPath, request: Request, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
     """The robot daemon checks the booking, plans and checks its prescription version, starts motion and
@@ -234,6 +244,7 @@ for _command in ("pause", "resume", "stop"):
         methods=["POST"],
         response_model=SessionRunOut,
         responses={503: {"description": "No robot"}, 409: {"description": "Not in a state that allows it"}},
+        dependencies=IN_CARE_FOR_MOTION if _command == "resume" else None,
     )
 
 
@@ -391,6 +402,8 @@ def _study_export_job(
     diagnosis: str | None, layout: str, include_free_text: bool,
 ) -> ExportJob:  # fmt: skip
     rows = logs.study_run_ids(session=session, start=from_date, end=to_date, diagnosis=diagnosis)
+    in_care = patients_in_care(session, user, {p for _, p in rows})
+    rows = [(r, p) for r, p in rows if p in in_care]
     if not rows:
         raise NotFoundError("recorded session runs in that range", f"{from_date}..{to_date}")
     run_ids = [r for r, _ in rows]
@@ -502,6 +515,7 @@ def _authorise_watch(database: Database, claims: TokenClaims | None, session_id:
         if user is None:
             return "login session ended"
         try:
+            require_object(session, user, "session_id", session_id)
             booking = get_booking(session=session, session_id=session_id)
         except NotFoundError as error:
             return str(error)

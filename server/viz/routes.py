@@ -11,6 +11,7 @@ from sqlalchemy import select
 
 from server.api_types import MAX_ID, IdPath, RequestModel
 from server.audit import service as audit
+from server.auth.access import ObjectAccess, require_object, require_patient
 from server.auth.dependencies import CurrentUser, authenticated_claims, current_user
 from server.auth.security import TokenClaims
 from server.db import SessionDep
@@ -29,7 +30,7 @@ from server.viz.view import LiveView, ReplayError
 REPLAY_SERIES = ("cue_specific_force_m_s2", "stance_pose", "slider_position_m", "drive_force_n", "plate_cop_m",
                  "plate_force_z_n", "harness_load_n")  # fmt: skip
 
-router = APIRouter(prefix="/viz", tags=["3d view"], dependencies=[Depends(current_user)])
+router = APIRouter(prefix="/viz", tags=["3d view"], dependencies=[Depends(current_user), ObjectAccess])
 
 NO_VIEW = "the 3D view is not running (turned off with SSP_REHAB_VIZ_ENABLED=false, or its port was taken)"
 
@@ -96,6 +97,7 @@ def replay_run(
     data: ReplayRequest, request: Request, session: SessionDep, user: CurrentUser, viewer: Viewer
 ) -> dict[str, Any]:
     """Play a recorded run in the 3D view at its recorded speed; `POST /viz/live` returns to the robot."""
+    require_object(session, user, "run_id", data.run_id)
     view = _view(request)
     run = get_run(session=session, run_id=data.run_id)
     columns = telemetry_columns(session=session, run_id=run.id)
@@ -140,6 +142,7 @@ def set_figure(
     data: FigureRequest, request: Request, session: SessionDep, user: CurrentUser, viewer: Viewer
 ) -> dict[str, Any]:
     """The standing figure takes the patient's height (the view still shows no name or other data)."""
+    require_patient(session, user, data.patient_id)
     view = _view(request)
     patient = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
     view.set_figure_height(patient.height_m)

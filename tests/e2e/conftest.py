@@ -139,16 +139,18 @@ def clinic(console_service: dict[str, Any]) -> dict[str, Any]:
     admin = _token(base, *ADMIN)
     headers = {"Authorization": f"Bearer {admin}"}
     with httpx.Client(base_url=base, headers=headers, timeout=30) as api:
-        api.post("/users", json={"username": THERAPIST[0], "password": THERAPIST[1], "role": "therapist",
-                                 "full_name": THERAPIST[2]})  # fmt: skip
-        api.post("/patients", json={  # a long name widens the booking form's patient list
+        therapist = api.post("/users", json={"username": THERAPIST[0], "password": THERAPIST[1], "role": "therapist",
+                                             "full_name": THERAPIST[2]}).json()  # fmt: skip
+        long_named = api.post("/patients", json={  # a long name widens the booking form's patient list
             "identifier": "MRN-DEF-LONG-000001", "name": "Maria-Magdalena Schönhausen-Wittgenstein",
             "date_of_birth": "1944-09-30", "sex": "female", "height_m": 1.6, "body_mass_kg": 58,
-        })  # fmt: skip
+        }).json()  # fmt: skip
         patient = api.post("/patients", json={
             "identifier": "MRN-DEF-1", "name": "Jürgen Äbischer", "date_of_birth": "1950-02-03", "sex": "male",
             "height_m": 1.82, "body_mass_kg": 80, "notes": "prefers the left rail at entry",
         }).json()  # fmt: skip
+        for record in (long_named, patient):  # the therapist treats both (docs/service.md, care teams)
+            api.post(f"/patients/{record['id']}/care-team", json={"user_id": therapist["id"]}).raise_for_status()
         prescription = api.post("/prescriptions", json={
             "patient_id": patient["id"], "name": "Sway basics",
             "segments": [{"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.4, "frequency_hz": 0.5},

@@ -352,3 +352,31 @@ def test_soap_notes_are_kept_per_run(console: Any, clinic: dict[str, Any]) -> No
     panel.get_by_text("Therapist notes (SOAP)").click()
     expect(panel.get_by_label("S: subjective")).to_have_value("Felt unsteady after the turn.")
     expect(panel.get_by_label("P: plan")).to_have_value("Repeat at 0.3 m/s² next week.")
+
+
+def test_a_patient_changed_meanwhile_is_not_overwritten(console: Any, clinic: dict[str, Any]) -> None:
+    """Issue 20 defect 15: the edit form sends the version it read (If-Match); when a colleague saved in
+    between, the page says who changed it and when, and nothing is written."""
+    import httpx
+
+    session = console(user=THERAPIST)
+    page = session.login()
+    created = httpx.post(f"{clinic['api']}/patients", headers={"Authorization": f"Bearer {clinic['admin_token']}"},
+                         json={"identifier": "MRN-E2E-412", "name": "Otto Overwrite", "date_of_birth": "1960-01-01",
+                               "sex": "male", "height_m": 1.75, "body_mass_kg": 75}, timeout=30).json()  # fmt: skip
+    admin = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    therapist_id = httpx.get(f"{clinic['api']}/users", headers=admin, timeout=30).json()
+    therapist_id = next(u["id"] for u in therapist_id if u["username"] == THERAPIST[0])
+    httpx.post(f"{clinic['api']}/patients/{created['id']}/care-team", headers=admin, json={"user_id": therapist_id},
+               timeout=30).raise_for_status()  # fmt: skip
+    session.go(f"#/patients/{created['id']}/edit")
+    page.get_by_label("Notes").fill("mine")
+    colleague = httpx.patch(f"{clinic['api']}/patients/{created['id']}", headers={**admin, "If-Match": '"1"'},
+                            json={"notes": "theirs"}, timeout=30)  # fmt: skip
+    assert colleague.status_code == 200, colleague.text
+    page.get_by_role("button", name="Save patient").click()
+    refusal = page.locator(".banner.error")
+    expect(refusal).to_contain_text(re.compile(r"Changed by e2e-admin at \d\d:\d\d( [AP]M)? \(now version 2\)"))
+    expect(refusal).to_contain_text("Reload")
+    stored = httpx.get(f"{clinic['api']}/patients/{created['id']}", headers=admin, timeout=30).json()
+    assert stored["notes"] == "theirs"

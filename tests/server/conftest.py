@@ -64,9 +64,13 @@ class Seed:
     therapist_id: int
     admin_token: str
     therapist_token: str
+    # A second therapist, for object-level authorisation: not in the care of the first one's patients.
+    colleague_id: int
+    colleague_token: str
 
     def headers(self, role: str = "therapist") -> dict[str, str]:
-        return {"Authorization": f"Bearer {self.admin_token if role == 'admin' else self.therapist_token}"}
+        token = {"admin": self.admin_token, "therapist": self.therapist_token, "colleague": self.colleague_token}[role]
+        return {"Authorization": f"Bearer {token}"}
 
 
 def _seed_accounts(engine: Engine, backend: str) -> Seed:
@@ -78,6 +82,7 @@ def _seed_accounts(engine: Engine, backend: str) -> Seed:
         for username, role, password in (
             ("admin", "admin", ADMIN_PASSWORD),
             ("therapist", "therapist", THERAPIST_PASSWORD),
+            ("colleague", "therapist", THERAPIST_PASSWORD),
         ):
             user_id = connection.execute(
                 User.__table__.insert()
@@ -97,9 +102,12 @@ def _seed_accounts(engine: Engine, backend: str) -> Seed:
                     id=session_id, user_id=user_id, created_at=dt.datetime.now(dt.UTC), expires_at=expires
                 )
             )
-            ids[role] = user_id
-            tokens[role] = signer.issue(TokenClaims(session_id, user_id, int(expires.timestamp())))
-    return Seed(backend, ids["admin"], ids["therapist"], tokens["admin"], tokens["therapist"])
+            ids[username] = user_id
+            tokens[username] = signer.issue(TokenClaims(session_id, user_id, int(expires.timestamp())))
+    return Seed(
+        backend, ids["admin"], ids["therapist"], tokens["admin"], tokens["therapist"], ids["colleague"],
+        tokens["colleague"],
+    )  # fmt: skip
 
 
 def postgres_url_or_skip() -> str:

@@ -18,7 +18,9 @@ def test_create_read_update_and_list_patients(client: TestClient, seed: Seed) ->
     patient_id = create_patient(client, headers)
     read = client.get(f"/api/v1/patients/{patient_id}", headers=headers).json()
     assert {k: read[k] for k in PATIENT} == PATIENT
-    updated = client.patch(f"/api/v1/patients/{patient_id}", json={"body_mass_kg": 61.5}, headers=headers)
+    updated = client.patch(
+        f"/api/v1/patients/{patient_id}", json={"body_mass_kg": 61.5, "expected_version": 1}, headers=headers
+    )
     assert updated.status_code == 200 and updated.json()["body_mass_kg"] == 61.5
     create_patient(client, headers, identifier="MRN-0002", name="Other Person", diagnosis="Parkinson")
     found = client.get("/api/v1/patients", params={"search": "greta"}, headers=headers).json()
@@ -51,7 +53,10 @@ def test_non_finite_numbers_are_refused(client: TestClient, seed: Seed) -> None:
 def test_unknown_ids_give_404_and_duplicates_409(client: TestClient, seed: Seed) -> None:
     headers = seed.headers()
     assert client.get("/api/v1/patients/999999", headers=headers).status_code == 404
-    assert client.patch("/api/v1/patients/999999", json={"notes": "x"}, headers=headers).status_code == 404
+    assert (
+        client.patch("/api/v1/patients/999999", json={"notes": "x", "expected_version": 1}, headers=headers).status_code
+        == 404
+    )
     create_patient(client, headers)
     duplicate = client.post("/api/v1/patients", json=PATIENT, headers=headers)
     assert duplicate.status_code == 409 and duplicate.json()["field"] == "identifier"
@@ -70,7 +75,9 @@ def test_reads_and_changes_of_patient_records_are_audited_without_patient_data(c
     headers = seed.headers()
     patient_id = create_patient(client, headers)
     client.get(f"/api/v1/patients/{patient_id}", headers=headers)
-    client.patch(f"/api/v1/patients/{patient_id}", json={"notes": "dizzy today"}, headers=headers)
+    client.patch(
+        f"/api/v1/patients/{patient_id}", json={"notes": "dizzy today", "expected_version": 1}, headers=headers
+    )
     client.get("/api/v1/patients", headers=headers)
     entries = audit(client, seed, resource_type="patient")
     actions = [(e["action"], e["resource_id"], e["user_id"]) for e in reversed(entries)]

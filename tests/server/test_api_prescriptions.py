@@ -80,7 +80,9 @@ def test_editing_creates_a_new_version_and_keeps_the_old_one(client: TestClient,
     prescription_id = create_prescription(client, headers, create_patient(client, headers))
     longer = {**SEGMENT, "duration_s": 90.0}
     revised = client.put(
-        f"/api/v1/prescriptions/{prescription_id}", json={"segments": [longer], "note": "longer"}, headers=headers
+        f"/api/v1/prescriptions/{prescription_id}",
+        json={"segments": [longer], "note": "longer"},
+        headers={**headers, "If-Match": '"1"'},
     )
     assert revised.status_code == 200
     assert revised.json()["latest_version"] == 2 and revised.json()["current"]["note"] == "longer"
@@ -89,7 +91,12 @@ def test_editing_creates_a_new_version_and_keeps_the_old_one(client: TestClient,
     versions = client.get(f"/api/v1/prescriptions/{prescription_id}/versions", headers=headers).json()
     assert [v["version"] for v in versions] == [1, 2]
     assert client.get(f"/api/v1/prescriptions/{prescription_id}/versions/3", headers=headers).status_code == 404
-    assert client.put("/api/v1/prescriptions/999999", json={"segments": [longer]}, headers=headers).status_code == 404
+    assert (
+        client.put(
+            "/api/v1/prescriptions/999999", json={"segments": [longer], "expected_version": 1}, headers=headers
+        ).status_code
+        == 404
+    )
 
 
 def test_a_revision_that_omits_the_cueing_and_seed_keeps_the_current_ones(client: TestClient, seed: Seed) -> None:
@@ -99,9 +106,12 @@ def test_a_revision_that_omits_the_cueing_and_seed_keeps_the_current_ones(client
     created = client.post("/api/v1/prescriptions", json={**body, "seed": 7}, headers=headers)
     assert created.status_code == 201, created.text
     url = f"/api/v1/prescriptions/{created.json()['id']}"
-    kept = client.put(url, json={"segments": [{**SEGMENT, "duration_s": 90.0}]}, headers=headers).json()["current"]
+    kept = client.put(url, json={"segments": [{**SEGMENT, "duration_s": 90.0}], "expected_version": 1}, headers=headers)
+    kept = kept.json()["current"]
     assert (kept["content"]["cueing"], kept["content"]["seed"]) == ("optimal", 7)
-    changed = client.put(url, json={"segments": [SEGMENT], "cueing": "classical", "seed": 0}, headers=headers)
+    changed = client.put(
+        url, json={"segments": [SEGMENT], "cueing": "classical", "seed": 0, "expected_version": 2}, headers=headers
+    )
     assert (changed.json()["current"]["content"]["cueing"], changed.json()["current"]["content"]["seed"]) == (
         "classical",
         0,

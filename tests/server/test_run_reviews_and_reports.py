@@ -159,12 +159,16 @@ def test_archived_patients_leave_the_lists_and_come_back(client: TestClient, see
 
     headers = seed.headers()
     patient_id = create_patient(client, headers, notes="uses a cane outdoors")
-    archived = client.patch(f"/api/v1/patients/{patient_id}", json={"archived": True}, headers=headers)
+    archived = client.patch(
+        f"/api/v1/patients/{patient_id}", json={"archived": True}, headers={**headers, "If-Match": '"1"'}
+    )
     assert archived.status_code == 200 and archived.json()["archived_at"] is not None
     assert client.get("/api/v1/patients", headers=headers).json() == []
     listed = client.get("/api/v1/patients", params={"include_archived": True}, headers=headers).json()
     assert [p["id"] for p in listed] == [patient_id] and listed[0]["notes"] == "uses a cane outdoors"
-    restored = client.patch(f"/api/v1/patients/{patient_id}", json={"archived": False}, headers=headers)
+    restored = client.patch(
+        f"/api/v1/patients/{patient_id}", json={"archived": False}, headers={**headers, "If-Match": '"2"'}
+    )
     assert restored.json()["archived_at"] is None
     assert [p["id"] for p in client.get("/api/v1/patients", headers=headers).json()] == [patient_id]
     entries = client.get(
