@@ -82,6 +82,7 @@ UNSCOPED_ROUTES: dict[tuple[str, str], str] = {
     ("POST", "/auth/login"): PUBLIC,
     ("POST", "/auth/logout"): ANY_USER,
     ("GET", "/auth/me"): ANY_USER,
+    ("POST", "/auth/unlock"): ADMIN_ONLY,
     ("POST", "/estop"): "public: anyone at the console may stop the robot",
     ("GET", "/calendar/{token}.ics"): "public: the secret link is the credential of one therapist's own feed",
     ("GET", "/users"): ADMIN_ONLY,
@@ -101,6 +102,9 @@ UNSCOPED_ROUTES: dict[tuple[str, str], str] = {
     ("GET", "/reviews/pending"): "the robot's pending acknowledgement (a safety interlock); its notes only for "
     "the run's care team",
     ("GET", "/exports/bulk"): "pseudonymised runs of the caller's care teams (admins: all)",
+    ("POST", "/exports/bulk/jobs"): "pseudonymised runs of the caller's care teams (admins: all)",
+    ("GET", "/exports/jobs/{job_id}"): "the user who started the export job only (others: 404)",
+    ("GET", "/exports/jobs/{job_id}/download"): "the user who started the export job only (others: 404)",
     ("GET", "/robot/state"): ANY_USER,
     ("POST", "/robot/reset"): ANY_USER,
     ("POST", "/sessions/{session_id}/pause"): STOP,

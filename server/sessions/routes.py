@@ -331,6 +331,7 @@ def _session_export_job(
 ) -> ExportJob:  # fmt: skip
     if identify and user.role != "admin":
         raise HTTPException(status.HTTP_403_FORBIDDEN, detail="identify = true: needs the admin role")
+    require_object(session, user, "session_id", session_id)  # the export router streams: no ObjectAccess
     booking = get_booking(session=session, session_id=session_id)
     query = select(SessionRun).where(SessionRun.scheduled_session_id == booking.id).order_by(SessionRun.id.desc())
     if run_id is not None:
