@@ -19,6 +19,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import Engine, create_engine, text
 
+from benchmarks.fault_harness import Console
 from server.app import create_app
 from server.auth.models import AuthSession
 from server.auth.security import TokenClaims, TokenSigner, hash_password, new_session_id
@@ -397,3 +398,15 @@ def booked_session(
     response = book(client, headers, patient_id=patient_id, prescription_id=prescription_id, start=start, robot=robot)
     assert response.status_code == 201, response.text
     return Booked(patient_id, prescription_id, response.json()[0]["id"])
+
+
+@pytest.fixture
+def console(tmp_path: Path) -> Iterator[Console]:
+    """A real console (`serve` and its robot daemon as separate processes) in a fresh data directory; a
+    module that needs other options defines its own."""
+    instance = Console(tmp_path / "console")
+    instance.start()
+    try:
+        yield instance
+    finally:
+        instance.stop()

@@ -24,6 +24,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import Engine, make_url, select
 
+from benchmarks.fault_harness import in_background
 from server.app import create_app
 from server.auth.safe_commands import TOKEN_ONLY, VERIFIED
 from server.db import Database, create_database_engine, upgrade_database
@@ -179,20 +180,6 @@ def outage_database(backend: str, directory: Path) -> Iterator[tuple[str, Engine
 def outage_setup(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[tuple[str, Engine, Seed, Any]]:
     with outage_database(request.param, tmp_path) as setup:
         yield setup
-
-
-def in_background(function: Any) -> tuple[threading.Thread, list[Any]]:
-    result: list[Any] = []
-
-    def target() -> None:
-        try:
-            result.append(function())
-        except Exception as error:
-            result.append(error)
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    return thread, result
 
 
 def answer_during_outage(function: Any) -> Any:

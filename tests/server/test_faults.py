@@ -35,16 +35,6 @@ LONG_LOAD = [{"cue": SHORT_SINE, "duration_s": 900.0}]  # its offline check take
 LOAD_HEAD_START_S = 1.5  # lets the start request reach the load; the load itself takes far longer
 
 
-@pytest.fixture
-def console(tmp_path: Path) -> Iterator[Console]:
-    instance = Console(tmp_path / "console")
-    instance.start()
-    try:
-        yield instance
-    finally:
-        instance.stop()
-
-
 def start_ok(console: Console, session_id: int) -> dict:
     response = console.post(f"/sessions/{session_id}/start")
     assert response.status_code == 200, response.text

@@ -152,16 +152,6 @@ def test_defect_3_a_full_data_disk_stops_the_run_and_keeps_every_sample(console_
 # --- defect 18: a dead worker or daemon -------------------------------------------------------------------
 
 
-@pytest.fixture
-def console(tmp_path: Path) -> Iterator[Console]:
-    instance = Console(tmp_path / "console")
-    instance.start()
-    try:
-        yield instance
-    finally:
-        instance.stop()
-
-
 def worker_pids(console: Console) -> list[int]:
     return [int(details_of(e)["pid"]) for e in console.events() if e["kind"] == "worker_started"]
 
