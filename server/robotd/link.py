@@ -153,10 +153,23 @@ class DaemonLink:
     # --- commands --------------------------------------------------------------------------------------
 
     def start_session(self, session_id: int, user_id: int) -> int:
-        return int(self._request("start", session_id=session_id, user_id=user_id, link_id=self.link_id))
+        # The emergency stops requested so far: one requested after this moment cancels the start.
+        control = self._control
+        generation = control.estop_request()[0] if control is not None else None
+        return int(
+            self._request(
+                "start",
+                session_id=session_id,
+                user_id=user_id,
+                link_id=self.link_id,
+                estop_generation=generation,
+                control_name=control.name if control is not None else None,
+            )
+        )
 
-    def control(self, session_id: int, command: RunCommand, user_id: int) -> int:
-        return int(self._request("control", session_id=session_id, command=command, user_id=user_id))
+    def control(self, session_id: int, command: RunCommand, user_id: int) -> int | None:
+        run_id = self._request("control", session_id=session_id, command=command, user_id=user_id)
+        return int(run_id) if run_id is not None else None
 
     def reset(self, user_id: int) -> None:
         self._request("reset", user_id=user_id)
@@ -332,7 +345,7 @@ class LocalLink:
     def start_session(self, session_id: int, user_id: int) -> int:
         return self.daemon.start_session(session_id, user_id)
 
-    def control(self, session_id: int, command: RunCommand, user_id: int) -> int:
+    def control(self, session_id: int, command: RunCommand, user_id: int) -> int | None:
         return self.daemon.control(session_id, command, user_id)
 
     def reset(self, user_id: int) -> None:
