@@ -52,8 +52,9 @@ def _start(console: Console, **booking: Any) -> dict[str, Any]:
 
 
 def _free(console: Console) -> bool:
-    """Can a new session start now, after the operator's reset? (It is stopped again at once.)"""
+    """Can a new session start now, after the operator's reset and acknowledgement? (It is stopped again.)"""
     console.post("/robot/reset")
+    console.acknowledge_pending()
     session_id = console.book()
     response = console.post(f"/sessions/{session_id}/start")
     if response.status_code != 200:
@@ -64,7 +65,8 @@ def _free(console: Console) -> bool:
 
 
 def _settle(console: Console) -> None:
-    """Wait until the robot stands still and clear any latched stop, ready for the next scenario."""
+    """Wait until the robot stands still, clear any latched stop and acknowledge it, ready for the next
+    scenario."""
     wait_for(
         lambda: console.get("/robot/state").json().get("state") in ("idle", "stopped", "estop", "fault", "ready"),
         EVENT_TIMEOUT_S,
@@ -72,6 +74,7 @@ def _settle(console: Console) -> None:
         0.05,
     )
     console.post("/robot/reset")
+    console.acknowledge_pending()
 
 
 def _record(console: Console, run_id: int, injected_utc_s: float) -> dict[str, Any]:
