@@ -286,7 +286,8 @@ class RobotDaemon:
         """The run id; None when a stop cancelled this session's start while it was still loading."""
         with self._lock:
             starting = self._starting
-            if command == "stop" and starting is not None and starting.session_id == session_id:
+            stops_the_start = command == "stop" and starting is not None and starting.session_id == session_id
+            if stops_the_start and starting is not None:
                 if not starting.armed:
                     self._cancel_start(starting, "the stop")
                     return None
@@ -295,7 +296,9 @@ class RobotDaemon:
                     self.worker.stop()
                 except Exception as error:
                     raise service.refused(error) from error
-                return None
+        if stops_the_start and starting is not None:
+            return self._run_of_stopped_start(starting)
+        with self._lock:
             run = self.run if self.run is not None and self.run.session_id == session_id else None
             active = run if run is not None and run.outcome is None else None
             next_state = service.check_command(active.state if active else None, session_id, command)
@@ -317,6 +320,14 @@ class RobotDaemon:
                 )
         future.result(60.0)
         return active.run_id
+
+    def _run_of_stopped_start(self, starting: PendingStart, timeout_s: float = 60.0) -> int | None:
+        """The run a start being recorded when it was stopped became (it ends `stopped`), once recorded."""
+        deadline = time.monotonic() + timeout_s
+        while self._starting is starting and time.monotonic() < deadline:
+            time.sleep(0.01)
+        run = self.run
+        return run.run_id if run is not None and run.session_id == starting.session_id else None
 
     def reset(self, user_id: int) -> None:
         try:
