@@ -332,9 +332,10 @@ export async function sessionPage(main, sessionId, cleanup) {
     if (!review) return;
     const what = OUTCOME_WORDS[review.outcome] || words(review.outcome);
     const stop = stopWords(review.outcome);
+    // The button before the explanation: it stays on screen at 1024×768 under the top bar and two banners.
     acknowledgePanel.append(h("h2", {}, `Run ${review.run_id} ended: ${what}`),
-      h("p", {}, `The robot ${booking.robot} starts again only after you acknowledge this ${stop}: reset the robot if it is stopped, acknowledge, then start. The acknowledgement is recorded with your name in the run's events.`),
-      h("button.danger#acknowledge-button", { type: "button", onclick: () => acknowledge(review) }, `Acknowledge the ${stop}`));
+      h("button.danger#acknowledge-button", { type: "button", onclick: () => acknowledge(review) }, `Acknowledge the ${stop}`),
+      h("p", {}, `The robot ${booking.robot} starts again only after you acknowledge this ${stop}: reset the robot if it is stopped, acknowledge, then start. The acknowledgement is recorded with your name in the run's events.`));
   }
   async function acknowledge(review) {
     const stop = stopWords(review.outcome);
