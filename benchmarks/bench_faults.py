@@ -45,8 +45,10 @@ from benchmarks.fault_harness import (
     small_disk,
     wait_for,
 )
+from benchmarks.start_cancel import cancel_loading_start, planning_started
 
 RATE_HZ = 1000.0
+START_CANCEL_TRIALS = 10  # issue 20's target: cancelled, with no motion afterwards, in 10 of 10
 STOP_EVENTS = ("service_lost", "controlled_stop", "drives_disabled", "run_ended")
 
 
@@ -72,8 +74,9 @@ def _start(console: Console, **booking: Any) -> dict[str, Any]:
 
 
 def _free(console: Console) -> bool:
-    """Can a new session start now, after the operator's reset? (It is stopped again at once.)"""
+    """Can a new session start now, after the operator's reset and acknowledgement? (It is stopped again.)"""
     console.post("/robot/reset")
+    console.acknowledge_pending()
     session_id = console.book()
     response = console.post(f"/sessions/{session_id}/start")
     if response.status_code != 200:
@@ -84,7 +87,8 @@ def _free(console: Console) -> bool:
 
 
 def _settle(console: Console) -> None:
-    """Wait until the robot stands still and clear any latched stop, ready for the next scenario."""
+    """Wait until the robot stands still, clear any latched stop and acknowledge it, ready for the next
+    scenario."""
     wait_for(
         lambda: console.get("/robot/state").json().get("state") in ("idle", "stopped", "estop", "fault", "ready"),
         EVENT_TIMEOUT_S,
@@ -92,6 +96,7 @@ def _settle(console: Console) -> None:
         0.05,
     )
     console.post("/robot/reset")
+    console.acknowledge_pending()
 
 
 def _record(console: Console, run_id: int, injected_utc_s: float) -> dict[str, Any]:
@@ -116,8 +121,31 @@ def _record(console: Console, run_id: int, injected_utc_s: float) -> dict[str, A
     return figures
 
 
-def _latencies_during(console: Console, background: threading.Thread, count: int) -> dict[str, Any]:
-    """/health and /estop round trips while `background` runs (and how many landed inside it)."""
+def _start_cancel_trials(console: Console, trials: int) -> dict[str, Any]:
+    """Issue 20, defect 2: `trials` times an emergency stop during a start's load, then a reset."""
+    outcomes = [cancel_loading_start(console) for _ in range(trials)]
+    confirmed = [o.estop_confirmed_after_ms for o in outcomes if o.estop_confirmed_after_ms is not None]
+    answered = [o.estop_to_start_answer_s for o in outcomes]
+    return {
+        "trials": trials,
+        "start_cancelled": sum(o.cancelled for o in outcomes),
+        "moved_afterwards": sum(o.moved for o in outcomes),
+        "runs_recorded": sum(o.runs_recorded for o in outcomes),
+        "estop_round_trip_p50_ms": _p([o.estop_round_trip_ms for o in outcomes], 50),
+        "estop_round_trip_max_ms": round(max(o.estop_round_trip_ms for o in outcomes), 2),
+        "estop_handler_to_latched_p50_ms": _p(confirmed, 50),
+        "estop_handler_to_latched_p99_ms": _p(confirmed, 99),
+        "estop_to_start_refused_p50_s": _p(answered, 50),
+        "estop_to_start_refused_max_s": round(max(answered), 3),
+        "refusals": sorted({o.detail.split(" at ")[0] for o in outcomes}),
+    }
+
+
+def _latencies_during(
+    console: Console, background: threading.Thread, count: int, estop_every: int | None = 5
+) -> dict[str, Any]:
+    """/health (and, every `estop_every` probes, /estop) round trips while `background` runs (and how many
+    landed inside it)."""
     health, estop, latched, inside = [], [], [], 0
     with httpx.Client(timeout=60.0) as client:
         for index in range(count):
@@ -125,7 +153,7 @@ def _latencies_during(console: Console, background: threading.Thread, count: int
                 break
             inside += 1
             health.append(_timed(lambda: client.get(f"{console.url}/health"))[0])
-            if index % 5 == 0:
+            if estop_every is not None and index % estop_every == 0:
                 elapsed, response = _timed(lambda: client.post(f"{console.url}/estop"))
                 if response.status_code == 200:
                     estop.append(elapsed)
@@ -314,14 +342,16 @@ def run(quick: bool = False) -> dict[str, Any]:
             figures["baseline_idle"] = _baseline(console, probes // 2)
             figures["stop_under_load"] = stop_under_load(console, quick)
 
-            # An emergency stop and /health during a long prescription load (the start then fails).
+            # /health during a long prescription load; an emergency stop then cancels the start (issue 20).
             long_load = [{"cue": SHORT_SINE, "duration_s": 900.0 if quick else 3599.0}]
             session_id = console.book(segments=long_load)
             loader, _ = in_background(lambda: console.post(f"/sessions/{session_id}/start"))
-            time.sleep(0.5)
-            figures["during_long_load"] = _latencies_during(console, loader, probes)
+            wait_for(lambda: planning_started(console, session_id), EVENT_TIMEOUT_S, "the load to begin")
+            figures["during_long_load"] = _latencies_during(console, loader, probes, estop_every=None)
+            console.post("/estop")
             loader.join(900)
             console.post("/robot/reset")
+            figures["estop_during_load"] = _start_cancel_trials(console, 3 if quick else START_CANCEL_TRIALS)
 
             # ... and during a large upload, while a session runs.
             run_id = _start(console)["id"]
@@ -439,9 +469,11 @@ def run(quick: bool = False) -> dict[str, Any]:
 
         finally:
             console.stop()
-    during = figures["during_long_load"]
+    during, cancel = figures["during_long_load"], figures["estop_during_load"]
     figures["targets"] = {
-        "estop_handler_to_latched_p99_ms_during_load <= 5": (during["estop_handler_to_latched_p99_ms"] or 1e9) <= 5.0,
+        "estop_handler_to_latched_p99_ms_during_load <= 5": (cancel["estop_handler_to_latched_p99_ms"] or 1e9) <= 5.0,
+        "estop_during_load_cancels_the_start_every_time": cancel["start_cancelled"] == cancel["trials"]
+        and cancel["moved_afterwards"] == 0,
         "health_p99_ms_during_load <= 50": (during["health_p99_ms"] or 1e9) <= 50.0,
         "dead_daemon_noticed_ms <= 200": figures["kill9_daemon"]["noticed_by_web_ms"] <= 200.0,
         "web_kill_loses_no_telemetry": figures["kill9_web"].get("telemetry_lost_s") == 0.0,

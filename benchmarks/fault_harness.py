@@ -278,6 +278,16 @@ class Console:
         result: list[dict[str, Any]] = self.get(f"/sessions/{session_id}/runs").json()
         return result
 
+    def acknowledge_pending(self) -> int | None:
+        """The therapist acknowledges the robot's last stop that moved the patient (an emergency stop, an
+        interruption, a fault, a fall, a limit stop), as a start needs; the run id, or None if none waited."""
+        pending = self.get("/reviews/pending", params={"robot": self.robot}).json()
+        if pending is None:
+            return None
+        answer = self.post(f"/runs/{pending['run_id']}/acknowledge", json={"note": "fault test: attended to"})
+        assert answer.status_code == 200, answer.text
+        return int(pending["run_id"])
+
     def wait_moving(self, timeout_s: float = EVENT_TIMEOUT_S) -> None:
         wait_for(
             lambda: (state := self.get("/robot/state")).status_code == 200 and state.json().get("state") == "running",

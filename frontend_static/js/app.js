@@ -4,7 +4,7 @@ import { adminPage } from "./admin.js";
 import { sessionPage } from "./console.js";
 import { protocolsPage } from "./protocols.js";
 import { editPatientPage, historyPage, loginPage, newPatientPage, patientPage, patientsPage, prescriptionPage, schedulePage } from "./pages.js";
-import { clinicClock, describeRobot, setClinicZone } from "./language.js";
+import { clinicClock, describeRobot, nextStepAfterReset, setClinicZone } from "./language.js";
 import { banner, clear, clearBanner, clearErrors, engineeringOn, errorText, h, setEngineering } from "./ui.js";
 
 // The software emergency stop: ONE request, no confirmation, from every page and over every dialog; the key
@@ -88,7 +88,7 @@ window.addEventListener("storage", () => {
 logout.addEventListener("click", async () => {
   await post("/auth/logout").catch(() => null);
   setUser(null);
-  clearErrors("robot", "robot-alert", "fault");
+  clearErrors("robot", "robot-alert", "robot-next", "fault");
   location.hash = "#/login";
 });
 window.addEventListener("ssp:unauthorised", () => {
@@ -99,6 +99,7 @@ window.addEventListener("ssp:unauthorised", () => {
 // --- robot status in the top bar: offline, faults, abnormal stops and a latched emergency stop are always
 // visible, in red, with the reason and the next step in words (js/language.js) ---------------------------
 const robotStatus = document.getElementById("robot-status");
+let lastRobotLevel = null;
 function showRobot(state) {
   const shown = describeRobot(state);
   robotStatus.className = `robot-status ${shown.level}`;
@@ -106,12 +107,24 @@ function showRobot(state) {
   robotStatus.dataset.stopReason = shown.stopReason;
   clearBanner("robot");
   if (shown.level === "bad") {
+    clearBanner("robot-next");
     const alert = banner(shown.stopReason === "fall" ? "fall" : "error", shown.reason, { key: "robot-alert", sticky: true });
     alert.querySelector("span").append(h("span.next-step", {}, shown.next));
   } else {
     clearBanner("robot-alert");
+    // Reset: the red banners go, and the next step shows while the stop waits for its acknowledgement.
+    if (lastRobotLevel === "bad") clearBanner("estop");
+    if (lastRobotLevel === "bad" || document.querySelector('[data-key="robot-next"]')) showNextStep();
   }
+  lastRobotLevel = shown.level;
 }
+// After a reset: a stop that moved the patient must be acknowledged before the next start (issue 20, build 9).
+async function showNextStep() {
+  const pending = await get("/reviews/pending").catch(() => null);
+  if (!pending) { clearBanner("robot-next"); return; }
+  banner("warning", nextStepAfterReset(pending), { key: "robot-next", sticky: true });
+}
+window.addEventListener("ssp:acknowledged", () => showNextStep());
 async function pollRobot() {
   if (!user) { robotStatus.textContent = ""; robotStatus.className = "robot-status"; return; }
   try {

@@ -2,7 +2,7 @@
 // live charts from the telemetry WebSocket, fall alerts, worker health, runs, events and exports.
 import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
-import { CLINICAL_EVENTS, OUTCOME_WORDS, clinicClock, describeRobot, detailWords, eventTitle, sessionTime, words } from "./language.js";
+import { CLINICAL_EVENTS, OUTCOME_WORDS, clinicClock, describeRobot, detailWords, eventTitle, sessionTime, stopWords, words } from "./language.js";
 import { exportControl } from "./exports.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, engineeringOn, fmt, fmtDateTime, h, showError, table } from "./ui.js";
@@ -71,18 +71,21 @@ export async function sessionPage(main, sessionId, cleanup) {
     [["oblique", "Overview"], ["front", "Front"], ["left", "Left side"], ["right", "Right side"], ["top", "Above"]].map(([preset, label]) =>
       h("button.secondary", { type: "button", onclick: () => post("/viz/camera", { preset }).catch((error) => showError(error, "command")) }, label)));
   const runsHost = h("div#runs");
+  const acknowledgePanel = h("div#acknowledge-panel", { hidden: true, role: "alert" });
   const totalS = prescription.content.segments.reduce((s, x) => s + x.duration_s, 0);
 
   main.append(
     h("h1", {}, `Session console: ${patient.name}`),
+    // The run controls come first: with the top bar and two alert banners at 1024×768, Reset robot stays on screen.
     h("div.panel", {},
+      h("div.row.run-controls", { role: "group", "aria-label": "Run control" }, controls.start, controls.pause, controls.resume, controls.stop, controls.reset),
+      acknowledgePanel, // right under the run controls: the next step after a reset
       h("div.row", {},
         h("div.grow", {},
           h("div", {}, h("strong", {}, "Prescription: "), `${prescriptionInfo.name}, version ${booking.prescription_version} (${prescription.content.segments.length} segment(s), ${fmt(totalS, "s", 0)})`),
           h("div", {}, h("strong", {}, "Booked: "), `${fmtDateTime(booking.start)} on ${booking.robot} · `, badge(booking.status)),
           h("div", {}, h("strong", {}, "Robot: "), supervisorState)),
-        h("div", {}, h("div.muted", {}, "Run"), runState)),
-      h("div.row.run-controls", { role: "group", "aria-label": "Run control" }, controls.start, controls.pause, controls.resume, controls.stop, controls.reset)),
+        h("div", {}, h("div.muted", {}, "Run"), runState))),
     h("div.console-grid", {},
       h("section", { "aria-label": "3D view" }, h("h2", {}, "3D view"), vizHost, cameraButtons, vizStatus),
       h("section", { "aria-label": "Worker health" }, h("h2", {}, "Robot and worker health"), health)),
@@ -112,7 +115,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   let frameRate = 0;
   let lastState = null;
   let activeRun = null; // declared with lastState: telemetry frames may arrive before the runs load
-  let pendingReview = null; // a fall or fault of this robot's last run not yet acknowledged
+  let pendingReview = null; // a stop of this robot's last run that moved the patient, not yet acknowledged
   const rateTimer = setInterval(() => { frameRate = framesThisSecond; framesThisSecond = 0; renderHealth(); }, 1000);
 
   function renderHealth() {
@@ -254,8 +257,6 @@ export async function sessionPage(main, sessionId, cleanup) {
   // --- runs, events, exports: each run's panel is built once and updated in place, so a choice made in it
   // (export format, open details, notes being typed) survives the refresh every 3 s -------------------------
   const panels = new Map();
-  const acknowledgePanel = h("div#acknowledge-panel", { hidden: true, role: "alert" });
-  runsHost.before(acknowledgePanel);
   function updateControls() {
     const robotState = lastState ? lastState.state : null;
     const robotBlocks = robotState !== null && !STARTABLE_ROBOT_STATES.includes(robotState);
@@ -330,18 +331,22 @@ export async function sessionPage(main, sessionId, cleanup) {
     clear(acknowledgePanel);
     if (!review) return;
     const what = OUTCOME_WORDS[review.outcome] || words(review.outcome);
+    const stop = stopWords(review.outcome);
+    // The button before the explanation: it stays on screen at 1024×768 under the top bar and two banners.
     acknowledgePanel.append(h("h2", {}, `Run ${review.run_id} ended: ${what}`),
-      h("p", {}, `The robot ${booking.robot} starts again only after you acknowledge this ${words(review.outcome)}. The acknowledgement is recorded with your name in the run's events.`),
-      h("button.danger#acknowledge-button", { type: "button", onclick: () => acknowledge(review) }, `Acknowledge the ${words(review.outcome)}`));
+      h("button.danger#acknowledge-button", { type: "button", onclick: () => acknowledge(review) }, `Acknowledge the ${stop}`),
+      h("p", {}, `The robot ${booking.robot} starts again only after you acknowledge this ${stop}: reset the robot if it is stopped, acknowledge, then start. The acknowledgement is recorded with your name in the run's events.`));
   }
   async function acknowledge(review) {
-    const ok = await confirmDialog({ title: `Acknowledge the ${words(review.outcome)} of run ${review.run_id}?`,
+    const stop = stopWords(review.outcome);
+    const ok = await confirmDialog({ title: `Acknowledge the ${stop} of run ${review.run_id}?`,
       body: "Confirm each point. A new run still needs the start checklist.", ok: "Acknowledge", checklist: ACKNOWLEDGEMENT_CHECKS });
     if (!ok) return;
     try {
       await post(`/runs/${review.run_id}/acknowledge`, { note: ACKNOWLEDGEMENT_CHECKS.join(" ") });
       clearErrors("command");
-      banner("info", `The ${words(review.outcome)} of run ${review.run_id} is acknowledged.`);
+      banner("info", `The ${stop} of run ${review.run_id} is acknowledged.`);
+      window.dispatchEvent(new CustomEvent("ssp:acknowledged"));
     } catch (error) { showError(error, "command"); }
     await refreshRuns();
   }
@@ -415,6 +420,7 @@ export async function sessionPage(main, sessionId, cleanup) {
       clearErrors("command");
       banner("info", "Reset sent: the robot is ready once it shows READY. A reset never starts motion.");
     } catch (error) { showError(error, "command"); }
+    await refreshRuns();
   });
   const onEngineering = (event) => { post("/viz/controls", { visible: event.detail }).catch(() => null); };
   window.addEventListener("ssp:engineering", onEngineering);

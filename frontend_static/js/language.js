@@ -7,7 +7,7 @@
 // Why a stop happened (server/realtime/telemetry.py StopReason), and what to do next.
 const STOP_REASONS = {
   watchdog: ["Stopped by the watchdog: the robot lost contact with the console service (no heartbeat), so it stopped the motion.",
-    "Next step: attend to the patient, check that the console computer and its network are working, then press Reset robot in the session console before a new run."],
+    "Next step: attend to the patient, check that the console computer and its network are working, then press Reset robot in the session console and acknowledge the stop before a new run."],
   service_lost: ["Stopped: the robot lost contact with the console service, so it stopped the motion.",
     "Next step: attend to the patient, restart the console service if it is not running, then Reset the robot."],
   late_ticks: ["Stopped: the robot's controller fell behind its timing (late control cycles), so it stopped the motion.",
@@ -29,7 +29,7 @@ const STOP_REASONS = {
   daemon_lost: ["Stopped: the robot's control program ended unexpectedly during the run; it was started again with the drives off.",
     "Next step: attend to the patient, then Reset the robot before a new run. Tell the technician."],
   emergency_stop: ["The emergency stop is latched.",
-    "Next step: attend to the patient; when it is safe, press Reset robot in the session console. Resetting never starts motion."],
+    "Next step: attend to the patient; when it is safe, press Reset robot in the session console, then acknowledge the stop before the next run. Resetting never starts motion."],
 };
 const CALM_STOPS = new Set(["none", "operator", "completed"]);
 
@@ -62,8 +62,18 @@ export const CUEING_WORDS = {
 // --- run outcomes and events -------------------------------------------------------------------------------
 export const OUTCOME_WORDS = {
   completed: "completed", stopped: "stopped by the therapist", emergency_stop: "emergency stop", fall: "fall detected",
-  fault: "fault", limit_hit: "stopped at a robot limit", running: "running", paused: "paused",
+  fault: "fault", limit_hit: "stopped at a robot limit", interrupted: "interrupted (watchdog or lost connection)",
+  running: "running", paused: "paused",
 };
+// The stops that moved the patient, each acknowledged before the next start (server/reviews/service.py).
+const STOP_WORDS = { emergency_stop: "emergency stop", interrupted: "interruption", fault: "fault", fall: "fall", limit_hit: "limit stop" };
+export const stopWords = (outcome) => STOP_WORDS[outcome] || words(outcome || "stop");
+// The banner after a reset while the last stop waits for its acknowledgement: what to do next, in order.
+export function nextStepAfterReset(pending) {
+  const what = stopWords(pending.outcome);
+  return `The robot is reset. Next step: acknowledge the ${what} of run ${pending.run_id} in the session console `
+    + "(below the run controls), then start the next run. The robot starts again only after the acknowledgement.";
+}
 const EVENT_WORDS = {
   start: "Run started", pause: "Paused", resume: "Resumed", stop: "Stopped by the therapist", reset: "Robot reset",
   emergency_stop: "Emergency stop", fall: "Fall detected", fault: "Fault", limit_hit: "Stopped at a robot limit",
@@ -199,7 +209,7 @@ const CONFLICT_PATTERNS = [
   [/(?:occurrence (\d+) of (\d+): )?(robot|patient) already booked from (.+?) \(session (\d+)\); requested (.+?) \(([\w/+-]+) time\)/i,
     (m) => `${m[1] ? `Occurrence ${m[1]} of ${m[2]}: the` : "The"} ${m[3]} is already booked from ${m[4]} (session ${m[5]}); the requested time was ${m[6]} (${m[7]} time).`],
   [/already acknowledged/i, "This stop has already been acknowledged."],
-  [/ended with an? ([\w ]+) that is not acknowledged/i, (m) => `The robot's last run ended with a ${m[1]}: acknowledge it in the session console before a new run.`],
+  [/ended with an? (.+?) that is not acknowledged/i, (m) => `The robot's last run ended with ${/^[aeiou]/i.test(m[1]) ? "an" : "a"} ${m[1]}: acknowledge it in the session console before a new run.`],
 ];
 // --- the clinic's clock: dates and times show in the clinic's zone (`clinic_timezone` of GET /health), as the
 // week view does, whatever zone the browser's computer is set to; until it is known, the browser's own.

@@ -181,16 +181,26 @@ class WorkerClient:
 
     # --- commands ---------------------------------------------------------------------------------
 
-    def load_prescription(self, prescription: dict[str, Any], patient: dict[str, Any] | None = None) -> dict[str, Any]:
+    def load_prescription(
+        self, prescription: dict[str, Any], patient: dict[str, Any] | None = None, estop_generation: int | None = None
+    ) -> dict[str, Any]:
         """Check the prescription offline in the worker and load it; raises `PrescriptionRejected`
-        (segment, time, limit) or `PrescriptionError` (field, value, rule). Returns the check report."""
-        result: dict[str, Any] = self._send("load", {"prescription": prescription, "patient": patient}, timeout_s=300.0)
+        (segment, time, limit) or `PrescriptionError` (field, value, rule). Returns the check report.
+        `estop_generation` (see `estop_request`): refused if an emergency stop was requested since."""
+        payload = {"prescription": prescription, "patient": patient, "estop_generation": estop_generation}
+        result: dict[str, Any] = self._send("load", payload, timeout_s=300.0)
         return result
 
-    def load_plan(self, plan: Any, report: dict[str, Any]) -> dict[str, Any]:
+    def load_plan(self, plan: Any, report: dict[str, Any], estop_generation: int | None = None) -> dict[str, Any]:
         """Load a plan already made and checked elsewhere (the daemon's planning process)."""
-        result: dict[str, Any] = self._send("load_plan", {"plan": plan, "report": report}, timeout_s=30.0)
+        payload = {"plan": plan, "report": report, "estop_generation": estop_generation}
+        result: dict[str, Any] = self._send("load_plan", payload, timeout_s=30.0)
         return result
+
+    def estop_request(self) -> tuple[int, float | None]:
+        """(emergency stops requested so far, UTC of the latest): a start carries the count it was asked for
+        under, and the worker refuses it once the count has moved on, whatever a reset did meanwhile."""
+        return self.control.estop_request()
 
     def service_lost(self, reason: str) -> None:
         """The console controlling the run is gone: a controlled stop now (the watchdog's reaction, sooner)."""
@@ -204,8 +214,8 @@ class WorkerClient:
         """Show a stop that happened before this worker (`worker_lost`, `daemon_lost`) as a latched fault."""
         self._send("latch_fault", {"reason": reason, "details": details})
 
-    def start_motion(self) -> None:
-        self._send("start")
+    def start_motion(self, estop_generation: int | None = None) -> None:
+        self._send("start", {"estop_generation": estop_generation})
 
     def pause(self) -> None:
         self._send("pause")

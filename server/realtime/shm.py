@@ -282,6 +282,16 @@ class ControlBlock:
         memory_barrier()
         self.fields["estop_requests"] += np.uint64(1)
 
+    def estop_request(self) -> tuple[int, float | None]:
+        """(emergency stops requested so far, UTC of the latest request). The request's time is monotonic
+        (perf_counter_ns, one clock for every process), converted with the current offset to wall time."""
+        requests = int(self.fields["estop_requests"][0])
+        memory_barrier()  # the counter before its time: the time read belongs to this count or a later one
+        if not requests:
+            return 0, None
+        request_ns = int(self.fields["estop_request_ns"][0])
+        return requests, time.time() - (time.perf_counter_ns() - request_ns) * 1e-9
+
     def close(self) -> None:
         del self.fields
         self.block.close()

@@ -131,6 +131,8 @@ class Worker:
             return
         try:
             result: Any = None
+            if name in ("load", "load_plan", "start"):
+                self._refuse_after_estop(name, (payload or {}).get("estop_generation"))
             if name == "load":
                 result = self._load(payload["prescription"], payload.get("patient"))
             elif name == "load_plan":
@@ -164,6 +166,20 @@ class Worker:
             self._reply(request_id, False, {"type": "TransitionRefused", "message": str(refused)})
         except Exception as error:  # a bad command must never take the loop down
             self._reply(request_id, False, {"type": type(error).__name__, "message": str(error)})
+
+    def _refuse_after_estop(self, command: str, estop_generation: int | None) -> None:
+        """A load or start asked for before the latest emergency-stop request is refused, even after a reset:
+        the stop cancelled it (issue 20, defect 2). The flag was read at the top of this tick."""
+        if estop_generation is None:
+            return
+        requests = int(self._estop_requests[0])
+        if requests != int(estop_generation):
+            raise TransitionRefused(
+                command,
+                self.pipeline.supervisor.state,
+                f"cancelled: an emergency stop was requested after it (request {requests}; the {command} was asked "
+                f"for after request {int(estop_generation)})",
+            )
 
     def _load_plan(self, plan: PrescriptionPlan, report: dict[str, Any]) -> dict[str, Any]:
         """Take a plan the daemon's planning process made and checked: the loop never stops for it."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
 
 from server.api_types import NO_NUL_PATTERN, IdPath
 from server.auth.access import ObjectAccess, require_object
@@ -15,12 +15,16 @@ from server.reviews import service
 from server.reviews.schemas import AcknowledgementIn, AcknowledgementOut, RunNotesIn, RunNotesOut, RunReviewOut
 
 router = APIRouter(tags=["reviews"], dependencies=[Depends(current_user), ObjectAccess])
-RobotName = Annotated[str, Query(min_length=1, max_length=64, pattern=NO_NUL_PATTERN, description="Robot name.")]
+RobotName = Annotated[
+    str | None,
+    Query(min_length=1, max_length=64, pattern=NO_NUL_PATTERN, description="Robot name (default: this console's)."),
+]
 
 
 @router.get("/runs/{run_id}/review", response_model=RunReviewOut)
 def run_review(run_id: IdPath, session: SessionDep) -> RunReviewOut:
-    """Whether the run's fall or fault still needs an acknowledgement, who gave it, and the run's notes."""
+    """Whether the run's stop (emergency stop, interruption, fault, fall, limit stop) still needs an
+    acknowledgement, who gave it, and the run's notes."""
     return service.review(session=session, run_id=run_id)
 
 
@@ -32,8 +36,8 @@ def run_review(run_id: IdPath, session: SessionDep) -> RunReviewOut:
 def acknowledge_run(
     run_id: IdPath, data: AcknowledgementIn, session: SessionDep, user: CurrentUser
 ) -> AcknowledgementOut:
-    """Records (as an `acknowledged` event of the run) that the therapist attended to a fall, fault or
-    limit stop: the console starts the robot again only after it."""
+    """Records (as an `acknowledged` event of the run) that the therapist attended to a stop that moved the
+    patient (emergency stop, interruption, fault, fall, limit stop): the robot starts again only after it."""
     return service.acknowledge(session=session, run_id=run_id, user_id=user.id, note=data.note)
 
 
@@ -44,10 +48,12 @@ def save_run_notes(run_id: IdPath, data: RunNotesIn, session: SessionDep, user: 
 
 
 @router.get("/reviews/pending", response_model=RunReviewOut | None)
-def pending_acknowledgement(robot: RobotName, session: SessionDep, user: CurrentUser) -> RunReviewOut | None:
-    """The robot's last run if it ended in a fall, fault or limit stop not yet acknowledged; else null. Every
-    user of the robot sees that it is pending; its notes only the run's care team."""
-    pending = service.pending_on_robot(session=session, robot=robot)
+def pending_acknowledgement(
+    request: Request, session: SessionDep, user: CurrentUser, robot: RobotName = None
+) -> RunReviewOut | None:
+    """The robot's last run if it ended in a stop that moved the patient, not yet acknowledged; else null.
+    Every user of the robot sees that it is pending; its notes only the run's care team."""
+    pending = service.pending_on_robot(session=session, robot=robot or request.app.state.settings.robot)
     if pending is None:
         return None
     try:

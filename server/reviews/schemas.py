@@ -1,4 +1,4 @@
-"""Review requests and answers: the acknowledgement of a fall or fault, and a run's SOAP notes."""
+"""Review requests and answers: the acknowledgement of a stop that moved the patient, and a run's SOAP notes."""
 
 from __future__ import annotations
 
@@ -54,6 +54,9 @@ class RunReviewOut(ResponseModel):
     run_id: int
     robot: str
     outcome: str | None
-    needs_acknowledgement: bool = Field(description="The run ended in a fall or fault not yet acknowledged.")
+    needs_acknowledgement: bool = Field(
+        description="The run ended in a stop that moved the patient (emergency stop, interruption, fault, fall, "
+        "limit stop) not yet acknowledged."
+    )
     acknowledgement: AcknowledgementOut | None
     notes: RunNotesOut

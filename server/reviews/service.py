@@ -1,6 +1,8 @@
-"""Run reviews. A run that ended in a fall, a fault or a limit stop needs an acknowledgement before the
-robot it ran on starts again; the acknowledgement is an event of that run (who, when, what was checked),
-so it stands in the run's record, its exports and its report."""
+"""Run reviews. A run ended by a stop that moved the patient (an emergency stop, the watchdog or another
+interruption, a fault, a fall, a limit stop) needs an acknowledgement before the robot it ran on starts
+again (issue 20, build 9); the therapist's own stop and a completed run do not. The acknowledgement is an
+event of that run (who, when, what was checked), so it stands in the run's record, its exports and its
+report."""
 
 from __future__ import annotations
 
@@ -16,7 +18,15 @@ from server.scheduling.service import get_booking
 from server.sessions.models import RunOutcome, RunState, SessionEvent, SessionRun
 from server.sessions.service import add_event, get_run
 
-OUTCOMES_NEEDING_ACKNOWLEDGEMENT = frozenset({RunOutcome.FALL, RunOutcome.FAULT, RunOutcome.LIMIT_HIT})
+# Each outcome that needs an acknowledgement, in the words of the refusal.
+STOPS_NEEDING_ACKNOWLEDGEMENT = {
+    RunOutcome.EMERGENCY_STOP: "emergency stop",
+    RunOutcome.INTERRUPTED: "interruption (watchdog or lost connection)",
+    RunOutcome.FAULT: "fault",
+    RunOutcome.FALL: "fall",
+    RunOutcome.LIMIT_HIT: "limit stop",
+}
+OUTCOMES_NEEDING_ACKNOWLEDGEMENT = frozenset(STOPS_NEEDING_ACKNOWLEDGEMENT)
 ACKNOWLEDGED = "acknowledged"
 
 
@@ -91,16 +101,23 @@ def pending_on_robot(*, session: Session, robot: str) -> RunReviewOut | None:
     return review_of(session, last)
 
 
+def stop_words(outcome: str | None) -> str:
+    """The stop in the clinician's words ("emergency stop", "limit stop", …)."""
+    known = {str(stop): words for stop, words in STOPS_NEEDING_ACKNOWLEDGEMENT.items()}
+    return known.get(outcome or "", (outcome or "stop").replace("_", " "))
+
+
 def refuse_start_while_unacknowledged(*, session: Session, session_id: int) -> None:
-    """Refuses to start motion on a robot whose last run ended in a fall, fault or limit stop that nobody
-    acknowledged; checked before the worker is commanded (nothing moves, nothing is written)."""
+    """Refuses to start motion on a robot whose last run ended in a stop that moved the patient and that
+    nobody acknowledged; checked before the worker is commanded (nothing moves, nothing is written)."""
     booking = get_booking(session=session, session_id=session_id)
     pending = pending_on_robot(session=session, robot=booking.robot)
     if pending is not None:
-        what = (pending.outcome or "stop").replace("_", " ")
+        what = stop_words(pending.outcome)
+        article = "an" if what[0] in "aeiou" else "a"
         raise ConflictError(
-            f"run {pending.run_id} on {booking.robot} ended with a {what} that is not acknowledged: acknowledge it "
-            f"(POST /api/v1/runs/{pending.run_id}/acknowledge) before the robot starts again",
+            f"run {pending.run_id} on {booking.robot} ended with {article} {what} that is not acknowledged: "
+            f"acknowledge it (POST /api/v1/runs/{pending.run_id}/acknowledge) before the robot starts again",
             field="acknowledgement",
         )
 
@@ -110,10 +127,11 @@ def acknowledge(*, session: Session, run_id: int, user_id: int, note: str) -> Ac
     run = get_run(session=session, run_id=run_id)
     if run.state != RunState.ENDED or run.outcome not in OUTCOMES_NEEDING_ACKNOWLEDGEMENT:
         raise ConflictError(
-            f"run {run_id} ended as {run.outcome or run.state}: only a fall, fault or limit stop is acknowledged"
+            f"run {run_id} ended as {run.outcome or run.state}: nothing to acknowledge (only a stop that moved the "
+            "patient is: an emergency stop, an interruption, a fault, a fall or a limit stop)"
         )
     if _acknowledgement(session, run) is not None:
-        raise ConflictError(f"the {run.outcome.replace('_', ' ')} of run {run_id} is already acknowledged")
+        raise ConflictError(f"the {stop_words(run.outcome)} of run {run_id} is already acknowledged")
     event = add_event(
         session=session,
         run_id=run.id,

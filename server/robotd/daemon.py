@@ -101,6 +101,17 @@ class ActiveRun:
 
 
 @dataclass
+class PendingStart:
+    """A start being planned, loaded and armed; a stop or an emergency stop meanwhile cancels it."""
+
+    session_id: int
+    estop_generation: int | None  # the worker's emergency-stop request count when the start was asked for
+    cancelled: str | None = None  # by what, and when
+    armed: bool = False  # the worker accepted `start`: from here a stop stops the run instead
+    stopped_by: int | None = None  # who stopped it while it was being recorded
+
+
+@dataclass
 class LinkState:
     """One attached console: alive while its link is open and it beats."""
 
@@ -137,7 +148,7 @@ class RobotDaemon:
         self._lock = threading.RLock()
         self.run: ActiveRun | None = None
         self.recent_run_id: int | None = None
-        self._starting: int | None = None
+        self._starting: PendingStart | None = None
         self._arming: tuple[list[np.ndarray], list[dict[str, Any]]] | None = None
         self.links: dict[str, LinkState] = {}
         self.lease_holder: str | None = None
@@ -178,8 +189,16 @@ class RobotDaemon:
 
     # --- commands ---------------------------------------------------------------------------------
 
-    def start_session(self, session_id: int, user_id: int, controller: str | None = None) -> int:
-        """Start the booking's prescription on this robot; returns the run id. Refusals are 4xx errors."""
+    def start_session(
+        self, session_id: int, user_id: int, controller: str | None = None, estop_generation: int | None = None
+    ) -> int:
+        """Start the booking's prescription on this robot; returns the run id. Refusals are 4xx errors.
+
+        `estop_generation` is the worker's count of emergency-stop requests when the start was asked for (read
+        here when the caller did not): an emergency stop requested after it, or a stop of this session,
+        cancels the start while it loads, and a reset never lets it begin (issue 20, defect 2)."""
+        if estop_generation is None:
+            estop_generation = self._estop_request()[0]
         self._refuse_start_while_recording_fails()
         with self.database.session() as session:
             booking, version, patient = service.startable(session=session, session_id=session_id, robot=self.robot)
@@ -188,27 +207,32 @@ class RobotDaemon:
             session.commit()
         with self._lock:
             if self._starting is not None:
-                raise ConflictError(f"robot {self.robot!r} is busy starting session {self._starting}")
+                raise ConflictError(f"robot {self.robot!r} is busy starting session {self._starting.session_id}")
             if self.run is not None and self.run.outcome is None:
                 raise ConflictError(
                     f"robot {self.robot!r} is busy with run {self.run.run_id} (session {self.run.session_id})"
                 )
             self._take_lease(controller)
-            self._starting = session_id
+            starting = self._starting = PendingStart(session_id, estop_generation)
+        log.info("session %d: planning and checking its prescription", session_id)
         try:
             try:
-                self._load(content, anthropometrics)
+                self._load(content, anthropometrics, starting)
             except Exception as error:
+                self._refuse_if_cancelled(starting)
                 raise service.refused(error) from error
-            with self._lock:
+            with self._lock:  # a stop or an emergency stop from here on finds the start armed or refused
+                self._refuse_if_cancelled(starting)
                 if self.run is not None:
                     self._release(self.run)  # the previous run's tail ends here
                 self._arming = ([], [])
-            try:
-                self.worker.start_motion()
-            except Exception as error:
-                self._arming = None
-                raise service.refused(error) from error
+                try:
+                    self.worker.start_motion(estop_generation=estop_generation)
+                except Exception as error:
+                    self._arming = None
+                    self._refuse_if_cancelled(starting)
+                    raise service.refused(error) from error
+                starting.armed = True
             try:
                 clock = self.clock()
                 run_id = self.writer.call(
@@ -234,17 +258,60 @@ class RobotDaemon:
                     f"the run could not be recorded ({type(error).__name__}: {error}); the robot was stopped again"
                 ) from error
             self._confirm(run_id, session_id, controller, version_id=version_id, started_by_id=user_id)
+            with self._lock:
+                if starting.stopped_by is not None and self.run is not None and self.run.run_id == run_id:
+                    # A stop that came while the start was being recorded: the worker is stopping already.
+                    self._end(
+                        self.run, RunOutcome.STOPPED, "stopped by the operator", stopped_by_id=starting.stopped_by
+                    )
             return run_id
         finally:
             self._starting = None
 
-    def _load(self, content: dict[str, Any], patient: dict[str, Any]) -> None:
+    def _estop_request(self) -> tuple[int | None, float | None]:
+        """(count of emergency-stop requests, UTC of the latest) as the worker's control block holds them."""
+        try:
+            generation, utc_s = self.worker.estop_request()
+        except AttributeError:  # a worker without a request count: the daemon's own cancellation only
+            return None, None
+        return int(generation), utc_s
+
+    def _cancel_start(self, starting: PendingStart, why: str, utc_s: float | None = None) -> None:
+        """Cancel a start still loading: the first reason wins, and the planner's work is abandoned."""
+        if starting.cancelled is None:
+            at = dt.datetime.fromtimestamp(utc_s, dt.UTC) if utc_s is not None else dt.datetime.now(dt.UTC)
+            starting.cancelled = f"{why} at {at:%H:%M:%S} UTC"
+            log.warning("session %d: start cancelled by %s", starting.session_id, starting.cancelled)
+        if self.planner is not None and not starting.armed:
+            self.planner.cancel()
+
+    def _check_start_against_estop(self) -> None:
+        """An emergency stop requested since the start was asked for cancels it (whatever a reset did since)."""
+        starting = self._starting
+        if starting is None or starting.armed or starting.cancelled is not None or starting.estop_generation is None:
+            return
+        generation, utc_s = self._estop_request()
+        if generation is not None and generation != starting.estop_generation:
+            self._cancel_start(starting, "the emergency stop", utc_s)
+
+    def _refuse_if_cancelled(self, starting: PendingStart) -> None:
+        self._check_start_against_estop()
+        if starting.cancelled is not None:
+            raise ConflictError(
+                f"start cancelled by {starting.cancelled}: session {starting.session_id} did not start, nothing "
+                "moved and no run was recorded; start it again when the patient is ready",
+                field="start",
+            )
+
+    def _load(self, content: dict[str, Any], patient: dict[str, Any], starting: PendingStart) -> None:
+        generation = starting.estop_generation
         if self.planner is None:  # a worker that plans itself (tests' in-memory worker)
-            self.worker.load_prescription(content, patient)
+            self.worker.load_prescription(content, patient, estop_generation=generation)
             return
         plan, report = self.planner.plan(content, patient)
-        # An emergency stop latched during the check makes the worker refuse this load.
-        self.worker.load_plan(plan, report)  # type: ignore[attr-defined]
+        self._refuse_if_cancelled(starting)
+        # The worker refuses this load too if an emergency stop was requested since the start (even if reset).
+        self.worker.load_plan(plan, report, estop_generation=generation)  # type: ignore[attr-defined]
 
     def _confirm(
         self, run_id: int, session_id: int, controller: str | None, *, version_id: int, started_by_id: int
@@ -267,9 +334,24 @@ class RobotDaemon:
 
     def control(
         self, session_id: int, command: service.RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
-    ) -> dict[str, Any]:
+    ) -> dict[str, Any] | None:
         """Pause, resume or stop the session's run. Decided, journalled and answered here; the database
-        write follows (retried until the database takes it), so that stopping never waits for it."""
+        write follows (retried until the database takes it), so that stopping never waits for it. None when
+        a stop cancelled this session's start while it was still loading."""
+        with self._lock:
+            starting = self._starting
+            stops_the_start = command == "stop" and starting is not None and starting.session_id == session_id
+            if stops_the_start and starting is not None:
+                if not starting.armed:
+                    self._cancel_start(starting, "the stop")
+                    return None
+                starting.stopped_by = user_id  # armed but not yet recorded: stop now, record the end after
+                try:
+                    self.worker.stop()
+                except Exception as error:
+                    raise service.refused(error) from error
+        if stops_the_start and starting is not None:
+            return self._run_of_stopped_start(starting)
         with self._lock:
             run = self.run if self.run is not None and self.run.session_id == session_id else None
             active = run if run is not None and run.outcome is None else None
@@ -303,6 +385,14 @@ class RobotDaemon:
                 )
             return active.record(self.robot)
 
+    def _run_of_stopped_start(self, starting: PendingStart, timeout_s: float = 60.0) -> dict[str, Any] | None:
+        """The run a start being recorded when it was stopped became (it ends `stopped`), once recorded."""
+        deadline = time.monotonic() + timeout_s
+        while self._starting is starting and time.monotonic() < deadline:
+            time.sleep(0.01)
+        run = self.run
+        return run.record(self.robot) if run is not None and run.session_id == starting.session_id else None
+
     def reset(self, user_id: int) -> None:
         try:
             self.worker.reset()
@@ -317,6 +407,9 @@ class RobotDaemon:
         """Who asked for the emergency stop the web side already latched; ends the active run."""
         clock = self.clock()
         with self._lock:
+            if self._starting is not None and self._starting.estop_generation is None:
+                self._cancel_start(self._starting, "the emergency stop")  # a worker without a request count
+            self._check_start_against_estop()  # the request count says whether it came after the start
             run_ids = [self.recent_run_id] if self.recent_run_id is not None and self.run is not None else []
             if self.run is not None:
                 self._end(self.run, RunOutcome.EMERGENCY_STOP, "emergency stop", stopped_by_id=user_id)
@@ -528,6 +621,7 @@ class RobotDaemon:
                 log.exception("robot daemon recorder: one pass failed")
 
     def _record_once(self) -> None:
+        self._check_start_against_estop()  # abandons a loading start's planning within a pass of the stop
         with self._drain_lock:
             telemetry = self.worker.drain_telemetry()
             events = self.worker.drain_events()

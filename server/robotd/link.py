@@ -163,13 +163,26 @@ class DaemonLink:
     # --- commands --------------------------------------------------------------------------------------
 
     def start_session(self, session_id: int, user_id: int) -> int:
-        return int(self._request("start", session_id=session_id, user_id=user_id, link_id=self.link_id))
+        # The emergency stops requested so far: one requested after this moment cancels the start.
+        control = self._control
+        generation = control.estop_request()[0] if control is not None else None
+        return int(
+            self._request(
+                "start",
+                session_id=session_id,
+                user_id=user_id,
+                link_id=self.link_id,
+                estop_generation=generation,
+                control_name=control.name if control is not None else None,
+            )
+        )
 
     def control(
         self, session_id: int, command: RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
-    ) -> dict[str, Any]:
-        """The run as the daemon knows it once it decided (it never waits for the database)."""
-        run: dict[str, Any] = self._request(
+    ) -> dict[str, Any] | None:
+        """The run as the daemon knows it once it decided (it never waits for the database); None when a stop
+        cancelled the session's start while it was still loading."""
+        run: dict[str, Any] | None = self._request(
             "control", session_id=session_id, command=command, user_id=user_id, credential=credential
         )
         return run
@@ -357,7 +370,7 @@ class LocalLink:
 
     def control(
         self, session_id: int, command: RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
-    ) -> dict[str, Any]:
+    ) -> dict[str, Any] | None:
         return self.daemon.control(session_id, command, user_id, credential)
 
     def reset(self, user_id: int) -> None:

@@ -41,6 +41,10 @@ def _planner_entry(twin_path: str | None, control_rate_hz: int, supervisor: dict
             link.send(("error", f"{type(error).__name__}: {error}", None))
 
 
+class PlanningCancelled(RuntimeError):  # noqa: N818 — a decision, not a malfunction
+    """The check was abandoned on purpose."""
+
+
 class Planner:
     """The daemon's handle on its planning process (restarted if it dies)."""
 
@@ -50,6 +54,7 @@ class Planner:
         self._process: multiprocessing.process.BaseProcess | None = None
         self._link: Connection | None = None
         self.busy = threading.Event()  # set while a prescription is being checked
+        self._cancelled = False
 
     def start(self) -> None:
         context = multiprocessing.get_context("spawn")
@@ -75,12 +80,17 @@ class Planner:
             if self._process is None or not self._process.is_alive():
                 self.start()
             assert self._link is not None
+            self._cancelled = False
             self.busy.set()
             try:
                 self._link.send((prescription, patient))
                 status, result, report = self._link.recv()
             except (EOFError, OSError) as error:
-                self._process = None
+                dead, self._process = self._process, None
+                if dead is not None:
+                    dead.join(5.0)
+                if self._cancelled:
+                    raise PlanningCancelled("the check was abandoned: the start was cancelled") from error
                 raise RuntimeError(f"the planning process died while checking the prescription ({error})") from error
             finally:
                 self.busy.clear()
@@ -93,6 +103,14 @@ class Planner:
         if status == "invalid":
             raise PrescriptionError(result["field"], result["value"], result["limit"])
         raise RuntimeError(result)
+
+    def cancel(self) -> None:
+        """Abandon the check under way (a start cancelled by a stop): its process is ended, and the waiting
+        `plan` raises `PlanningCancelled`; the next plan starts a fresh process."""
+        process = self._process
+        if self.busy.is_set() and process is not None and process.is_alive():
+            self._cancelled = True
+            process.kill()
 
     def shutdown(self) -> None:
         if self._link is not None:

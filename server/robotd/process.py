@@ -280,7 +280,16 @@ class RobotDaemonProcess:
 
             raise WorkerUnavailableError(f"robot {self.paths.robot!r} is {self.state.label}: {self.reason}")
         if command == "start":
-            return daemon.start_session(int(request["session_id"]), int(request["user_id"]), request.get("link_id"))
+            # The emergency-stop count the console read when the start was asked for, if read from this worker.
+            worker = self.worker
+            same_worker = worker is not None and request.get("control_name") == worker.control.name
+            generation = request.get("estop_generation") if same_worker else None
+            return daemon.start_session(
+                int(request["session_id"]),
+                int(request["user_id"]),
+                request.get("link_id"),
+                int(generation) if generation is not None else None,
+            )
         if command == "control":
             credential = str(request.get("credential") or VERIFIED_LOGIN)
             return daemon.control(int(request["session_id"]), request["command"], int(request["user_id"]), credential)

@@ -58,7 +58,7 @@ from server.robotd.status import COMMAND_STALE_S, DAEMON_STALE_S
 from server.scheduling.service import get_booking
 from server.sessions import logs, service
 from server.sessions.models import SessionRun
-from server.sessions.schemas import EmergencyStopResult, SessionEventOut, SessionRunOut
+from server.sessions.schemas import EmergencyStopResult, SessionEventOut, SessionRunOut, StartCancelledOut
 from server.sessions.worker import RobotLink
 from server.users.models import User
 
@@ -211,8 +211,8 @@ IN_CARE_FOR_MOTION = [Depends(object_access_own_session)]
 )
 def start_session(session_id: IdPath, request: Request, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
     """The robot daemon checks the booking, plans and checks its prescription version, starts motion and
-    records a new run (with the run id it chose). Refused (409) while the robot's last run ended in an
-    unacknowledged fall, fault or limit stop."""
+    records a new run (with the run id it chose). Refused (409) while the robot's last run ended in a stop
+    that moved the patient (emergency stop, interruption, fault, fall, limit stop) nobody acknowledged."""
     database: Database = request.app.state.database
     with database.session() as session:  # closed before the daemon writes the run (SQLite has one writer)
         refuse_start_while_unacknowledged(session=session, session_id=session_id)
@@ -220,15 +220,25 @@ def start_session(session_id: IdPath, request: Request, user_id: ActingUserId, r
 
 
 def _control(command: service.RunCommand) -> Any:
+    def answer(session_id: int, run: dict[str, Any] | None) -> SessionRunOut | StartCancelledOut:
+        if run is None:  # a stop while the session's start was still loading cancelled that start
+            return StartCancelledOut(
+                scheduled_session_id=session_id,
+                detail=f"the start of session {session_id} was still loading: it is cancelled and nothing moved",
+            )
+        return SessionRunOut.model_validate(run)
+
     if command == "resume":  # motion again: a login the database confirms, as for a start
 
-        def control(session_id: IdPath, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut:
-            return SessionRunOut.model_validate(robot.control(session_id, command, user_id))
+        def control(session_id: IdPath, user_id: ActingUserId, robot: RobotDep) -> SessionRunOut | StartCancelledOut:
+            return answer(session_id, robot.control(session_id, command, user_id))
 
     else:  # stop and pause only make the robot safer: they never wait for the database
 
-        def control(session_id: IdPath, login: SafeCommandUser, robot: RobotDep) -> SessionRunOut:  # type: ignore[misc]
-            return SessionRunOut.model_validate(robot.control(session_id, command, login.user_id, login.credential))
+        def control(  # type: ignore[misc]
+            session_id: IdPath, login: SafeCommandUser, robot: RobotDep
+        ) -> SessionRunOut | StartCancelledOut:
+            return answer(session_id, robot.control(session_id, command, login.user_id, login.credential))
 
     control.__name__ = f"{command}_session"
     control.__doc__ = (
@@ -242,7 +252,7 @@ for _command in ("pause", "resume", "stop"):
         f"/sessions/{{session_id}}/{_command}",
         _control(_command),
         methods=["POST"],
-        response_model=SessionRunOut,
+        response_model=SessionRunOut | StartCancelledOut,
         responses={503: {"description": "No robot"}, 409: {"description": "Not in a state that allows it"}},
         dependencies=IN_CARE_FOR_MOTION if _command == "resume" else None,
     )

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import Any, Literal
 
 from server.api_types import ResponseModel
 
@@ -20,6 +20,14 @@ class SessionRunOut(ResponseModel):
     started_by_id: int | None
     stopped_by_id: int | None
     sample_count: int
+
+
+class StartCancelledOut(ResponseModel):
+    """The answer to a stop that came while the session's start was still loading: the start is cancelled."""
+
+    scheduled_session_id: int
+    status: Literal["start cancelled"] = "start cancelled"
+    detail: str
 
 
 class SessionEventOut(ResponseModel):

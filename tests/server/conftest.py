@@ -222,6 +222,10 @@ class FakeWorker:
     _events: list[dict[str, Any]] = field(default_factory=list)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     estopped: threading.Event = field(default_factory=threading.Event)
+    estop_requests: int = 0  # as the control block's counter: every emergency stop requested
+    estop_request_utc_s: float | None = None
+    load_gate: threading.Event | None = None  # when set by a test, a load waits for it (a long check)
+    loading: threading.Event = field(default_factory=threading.Event)  # a load is under way
 
     def _command(self, name: str, *args: Any) -> None:
         if self.refuse_with is not None and name not in ("emergency_stop", "latest_state"):
@@ -232,10 +236,15 @@ class FakeWorker:
     def start(self) -> None: ...
     def shutdown(self) -> None: ...
 
-    def load_prescription(self, prescription: dict[str, Any], patient: dict[str, Any] | None) -> None:
+    def load_prescription(
+        self, prescription: dict[str, Any], patient: dict[str, Any] | None, estop_generation: int | None = None
+    ) -> None:
+        self.loading.set()
+        if self.load_gate is not None:
+            assert self.load_gate.wait(60.0), "the test never ended the load"
         self._command("load_prescription", prescription, patient)
 
-    def start_motion(self) -> None:
+    def start_motion(self, estop_generation: int | None = None) -> None:
         self._command("start_motion")
 
     def pause(self) -> None:
@@ -248,8 +257,12 @@ class FakeWorker:
         self._command("stop")
 
     def emergency_stop(self) -> None:
+        self.estop_requests, self.estop_request_utc_s = self.estop_requests + 1, time.time()
         self._command("emergency_stop")
         self.estopped.set()
+
+    def estop_request(self) -> tuple[int, float | None]:
+        return self.estop_requests, self.estop_request_utc_s
 
     def reset(self) -> None:
         self._command("reset")

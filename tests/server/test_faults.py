@@ -98,6 +98,7 @@ def test_defect_2_a_killed_web_process_leaves_no_open_run_and_a_free_robot(conso
     assert ended and '"interrupted"' in str(ended[-1]["details"]).replace("'", '"'), [
         (e["kind"], e["details"]) for e in console.events(run["id"])
     ]
+    assert console.acknowledge_pending() == run["id"]  # the interruption moved the patient (issue 20, build 9)
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
 
@@ -242,6 +243,7 @@ def test_sigstop_of_the_web_process_stops_its_session_and_frees_the_robot(consol
         EVENT_TIMEOUT_S,
         f"the worker's {sorted(expected)} events",
     )
+    assert console.acknowledge_pending() == run["id"]
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
 
@@ -265,6 +267,7 @@ def test_kill_of_the_daemon_is_reported_at_once_and_its_run_closed_by_the_next_d
     wait_for(console.robot_ready, 600.0, "the restarted daemon")
     # Its fresh worker shows the stop the daemon's loss caused (`daemon_lost`) until a therapist resets.
     assert console.post("/robot/reset").status_code == 200
+    assert console.acknowledge_pending() == run["id"]
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
 

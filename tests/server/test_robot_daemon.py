@@ -89,6 +89,9 @@ def test_a_run_left_open_is_closed_interrupted_at_its_last_record_with_what_the_
         assert kinds.count("service_lost") == 1 and kinds[-1] == "run_ended"
     assert not (tmp_path / f"run-{run_id}").exists()
     second = booked_session(robot_client, seed.headers(), identifier="MRN-2", start="2031-05-06T10:00:00+00:00")
+    # The interruption moved the patient: acknowledged before the robot starts again (issue 20, build 9).
+    acknowledged = robot_client.post(f"/api/v1/runs/{run_id}/acknowledge", json={}, headers=seed.headers())
+    assert acknowledged.status_code == 200, acknowledged.text
     free = robot_client.post(f"/api/v1/sessions/{second.session_id}/start", headers=seed.headers())
     assert free.status_code == 200, free.text
 

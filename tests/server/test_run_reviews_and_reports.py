@@ -77,7 +77,7 @@ def test_only_falls_faults_and_limit_stops_are_acknowledged(
     booked = booked_session(robot_client, seed.headers())
     run = robot_client.post(f"/api/v1/sessions/{booked.session_id}/start", headers=seed.headers()).json()
     refused = robot_client.post(f"/api/v1/runs/{run['id']}/acknowledge", json={}, headers=seed.headers())
-    assert refused.status_code == 409 and "only a fall, fault or limit stop" in refused.json()["detail"]
+    assert refused.status_code == 409 and "nothing to acknowledge" in refused.json()["detail"]
     review = robot_client.get(f"/api/v1/runs/{run['id']}/review", headers=seed.headers()).json()
     assert review["needs_acknowledgement"] is False and review["acknowledgement"] is None
 

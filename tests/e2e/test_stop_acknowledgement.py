@@ -1,0 +1,102 @@
+"""Issue 20, defect 12 / build 9 in the browser: after an emergency stop and a reset, the red banners go
+and the next step shows (acknowledge the stop, then start); Start stays disabled until the acknowledgement;
+at 1024×768 "Reset robot" is visible without scrolling while the header and two red banners show."""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+from typing import Any
+
+import httpx
+import pytest
+
+from tests.e2e.conftest import ARTIFACTS
+
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
+
+expect = pytest.importorskip("playwright.sync_api").expect
+
+VIEWPORT = (1024, 768)
+
+
+def _click(locator: Any) -> None:
+    """A DOM click: with the 3D view rendering in software on a loaded machine, Playwright's pointer actions
+    wait for animation frames that come too seldom (tests/e2e/conftest.py, turn_engineering_on)."""
+    locator.evaluate("element => element.click()")
+
+
+def _confirm_checklist(page: Any) -> None:
+    dialog = page.locator("#confirm-dialog")
+    expect(dialog).to_be_visible()
+    for box in dialog.get_by_role("checkbox").all():
+        _click(box)
+        expect(box).to_be_checked()
+    expect(page.locator("#confirm-ok")).to_be_enabled()
+    _click(page.locator("#confirm-ok"))
+
+
+def test_after_an_estop_and_a_reset_the_stop_is_acknowledged_before_the_next_start(
+    console: Any, clinic: dict[str, Any]
+) -> None:
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    with httpx.Client(base_url=clinic["api"], headers=headers, timeout=60) as api:
+        # A stop another browser test left on this robot.
+        leftover = api.get("/reviews/pending", params={"robot": "twin-1"}).json()
+        if leftover is not None:
+            api.post(f"/runs/{leftover['run_id']}/acknowledge", json={"note": "e2e: earlier test"})
+        start = dt.datetime.fromisoformat(clinic["booking"]["start"]) + dt.timedelta(hours=5)
+        booking = api.post("/sessions", json={
+            "patient_id": clinic["patient"]["id"], "prescription_id": clinic["prescription"]["id"],
+            "robot": "twin-1", "start": start.isoformat(), "duration_s": 1800,
+        }).json()[0]  # fmt: skip
+
+    session = console(viewport=VIEWPORT)
+    # Without the 3D view: its software WebGL starves this page's main thread on a loaded machine, and it is
+    # not what this test is about (the page keeps its place: "3D view unavailable").
+    session.context.route(re.compile(r"/api/v1/viz/view/"), lambda route: route.abort())
+    session.page.set_default_timeout(60_000)
+    page = session.login()
+    session.go(f"#/session/{booking['id']}")
+    start_button, reset_button = page.locator("#start-button"), page.locator("#reset-button")
+    expect(start_button).to_be_enabled(timeout=30_000)
+    _click(start_button)
+    _confirm_checklist(page)
+    expect(page.locator("#run-state")).to_have_attribute("data-state", "running", timeout=120_000)
+
+    _click(page.locator("#estop"))
+    estop_banner = page.locator('.banner.error[data-key="estop"]')
+    robot_banner = page.locator('.banner.error[data-key="robot-alert"]')
+    expect(estop_banner).to_be_visible(timeout=15_000)
+    expect(robot_banner).to_be_visible(timeout=15_000)
+    expect(page.locator("#run-state")).to_have_attribute("data-state", "emergency_stop", timeout=30_000)
+
+    # The header and two red banners shown: "Reset robot" is still on screen without scrolling.
+    page.evaluate("() => window.scrollTo(0, 0)")
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "estop-two-banners-1024x768.png"))
+    box = reset_button.bounding_box()
+    assert box is not None and box["y"] >= 0 and box["y"] + box["height"] <= VIEWPORT[1], (
+        f"'Reset robot' is at y = {box and box['y']:.0f}..{box and box['y'] + box['height']:.0f} px: below the "
+        f"{VIEWPORT[1]} px window, under the header and the banners"
+    )
+    expect(start_button).to_be_disabled()
+
+    _click(reset_button)
+    expect(page.locator("#robot-status")).to_contain_text("READY", timeout=30_000)
+    # The red banners clear once the robot is reset; the next step says what to do, in order.
+    expect(estop_banner).to_have_count(0, timeout=15_000)
+    expect(robot_banner).to_have_count(0)
+    next_step = page.locator('.banner[data-key="robot-next"]')
+    expect(next_step).to_contain_text("acknowledge the emergency stop", timeout=15_000)
+    expect(next_step).to_contain_text("then start")
+    page.screenshot(path=str(ARTIFACTS / "after-reset-next-step-1024x768.png"))
+    # The robot is ready, but Start waits for the acknowledgement.
+    expect(start_button).to_be_disabled()
+    acknowledge = page.locator("#acknowledge-button")
+    expect(acknowledge).to_be_in_viewport()
+    _click(acknowledge)
+    _confirm_checklist(page)
+    expect(next_step).to_have_count(0, timeout=15_000)
+    expect(start_button).to_be_enabled(timeout=15_000)
+    assert not session.errors, session.errors
