@@ -35,6 +35,7 @@ from starlette.types import Receive, Scope, Send
 
 from server.exports import worker
 from server.exports.worker import OUTPUT_FILE, PROGRESS_FILE, write_frame
+from server.file_modes import OWNER_ONLY_DIRECTORY, private_directory
 
 logger = logging.getLogger(__name__)
 
@@ -163,11 +164,11 @@ class ExportJobs:
         for directory in base.glob("*") if base.is_dir() else ():
             if not directory.name.isdigit() or not _process_alive(int(directory.name)):
                 shutil.rmtree(directory, ignore_errors=True)
-        self.root.mkdir(parents=True, exist_ok=True)
+        private_directory(self.root)  # exports hold patient data: owner-only, as the database file
 
     def submit(self, job: ExportJob) -> ExportJob:
         job.directory = self.root / job.id
-        job.directory.mkdir()
+        job.directory.mkdir(mode=OWNER_ONLY_DIRECTORY)
         with self._lock:
             self._jobs[job.id] = job
         self.refresh()
