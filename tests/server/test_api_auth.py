@@ -45,6 +45,7 @@ def test_health_is_public_and_reports_no_robot(client: TestClient) -> None:
         "web_pid": os.getpid(),  # the process that answered (here the test's own, in-process app)
         "clinic_timezone": client.app.state.settings.timezone,  # type: ignore[attr-defined]
         "estop": {"url": None, "fallback": "/api/v1/estop"},  # no robot, no stop listener: the web route
+        "realtime": None,  # no robot daemon, no worker to schedule
     }
 
 
