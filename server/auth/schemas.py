@@ -26,7 +26,7 @@ class LoginUnlock(RequestModel):
     username: LoginText | None = Field(None, description="The account whose failed logins are forgotten.")
     address: IPvAnyAddress | None = Field(None, description="The client address whose back-off is lifted.")
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{"username": "jdoe", "address": "10.0.0.20"}]})
+    model_config = ConfigDict(json_schema_extra={"examples": [{"username": "therapist", "address": "10.0.0.20"}]})
 
     @model_validator(mode="after")
     def _something(self) -> LoginUnlock:
