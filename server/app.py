@@ -50,7 +50,6 @@ from server.exports.jobs import ExportJobs
 from server.file_modes import private_directory
 from server.observability.health import DatabaseProbe
 from server.prescriptions.preview import PreviewProcess
-from server.realtime.scheduling import lower_priority
 from server.robotd.daemon import RobotDaemon
 from server.robotd.estop_listener import page_stop_url
 from server.robotd.link import DaemonLink, LocalLink
@@ -331,11 +330,6 @@ def create_app(
             robot.open()
         app.state.robot = robot
         app.state.viz = await asyncio.to_thread(start_view, settings, twin, robot) if started_here else None
-        if started_here:
-            # The web process yields to its robot daemon on a busy computer. Nice is per thread: the event
-            # loop's thread, and the request threads it starts from now on; the robot link's threads and any
-            # daemon they start were started before, at the normal priority (server.realtime.scheduling).
-            lower_priority("the web process")
         fanout_task = None
         if robot is not None:
             app.state.fanout = TelemetryFanout(robot, settings.telemetry_rate_hz)
