@@ -423,3 +423,21 @@ def console(tmp_path: Path) -> Iterator[Console]:
         yield instance
     finally:
         instance.stop()
+
+
+def fallen_run(database: Database, booking: dict[str, Any]) -> int:
+    """A run that a fall ended, as the recorder writes it: what the run-review bodies act on."""
+    from sqlalchemy import select
+
+    from server.prescriptions.models import PrescriptionVersion
+    from server.sessions.models import SessionRun
+
+    with database.session() as session:
+        version_id = session.scalar(
+            select(PrescriptionVersion.id).where(PrescriptionVersion.prescription_id == booking["prescription_id"])
+        )
+        run = SessionRun(scheduled_session_id=booking["id"], prescription_version_id=version_id, robot=booking["robot"],
+                         state="ended", outcome="fall", ended_at=dt.datetime.now(dt.UTC))  # fmt: skip
+        session.add(run)
+        session.commit()
+        return int(run.id)

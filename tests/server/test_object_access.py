@@ -4,7 +4,6 @@ change what")."""
 
 from __future__ import annotations
 
-import datetime as dt
 import re
 from dataclasses import dataclass
 from typing import Any
@@ -12,14 +11,12 @@ from typing import Any
 import pytest
 from fastapi.routing import iter_route_contexts
 from fastapi.testclient import TestClient
-from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
 from server.app import API_PREFIX
 from server.auth.access import PATIENT_OBJECTS, SELF_OBJECTS, UNSCOPED_ROUTES
 from server.db import Database
-from server.prescriptions.models import PrescriptionVersion
-from tests.server.conftest import Seed, book, create_patient, create_prescription
+from tests.server.conftest import Seed, book, create_patient, create_prescription, fallen_run
 
 OBJECT_PARAMETERS = set(PATIENT_OBJECTS) | set(SELF_OBJECTS)
 # Unscoped routes that name a patient's object in their body: refused like a path id.
@@ -68,21 +65,6 @@ class Records:
         return API_PREFIX + re.sub(r"\{(\w+)(:path)?\}", lambda m: str(self.ids.get(m.group(1), 1)), path)
 
 
-def _run(database: Database, booking: dict[str, Any]) -> int:
-    """A run that a fall ended, as the recorder writes it."""
-    from server.sessions.models import SessionRun
-
-    with database.session() as session:
-        version_id = session.scalar(
-            select(PrescriptionVersion.id).where(PrescriptionVersion.prescription_id == booking["prescription_id"])
-        )
-        run = SessionRun(scheduled_session_id=booking["id"], prescription_version_id=version_id, robot=booking["robot"],
-                         state="ended", outcome="fall", ended_at=dt.datetime.now(dt.UTC))  # fmt: skip
-        session.add(run)
-        session.commit()
-        return int(run.id)
-
-
 def owned_records(client: TestClient, database: Database, seed: Seed, owner: str, serial: int) -> Records:
     headers = seed.headers(owner)
     patient_id = create_patient(client, headers, identifier=f"MRN-ACL-{owner}-{serial}")
@@ -99,7 +81,7 @@ def owned_records(client: TestClient, database: Database, seed: Seed, owner: str
             "prescription_id": prescription_id,
             "session_id": booking["id"],
             "series_id": booking["series_id"],
-            "run_id": _run(database, booking),
+            "run_id": fallen_run(database, booking),
             "therapist_id": owner_id,
             "user_id": seed.admin_id,  # care-team routes add and remove the admin: nobody loses access
             "version": 1,

@@ -18,13 +18,11 @@ from hypothesis import HealthCheck, given
 from hypothesis import settings as hypothesis_settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis import GenerationMode
-from sqlalchemy import select
 
 from server.app import create_app
 from server.db import Database
-from server.prescriptions.models import PrescriptionVersion
 from server.settings import Settings
-from tests.server.conftest import TEST_SECRET, FakeWorker, Seed, book, create_patient, create_prescription
+from tests.server.conftest import TEST_SECRET, FakeWorker, Seed, book, create_patient, create_prescription, fallen_run
 
 REQUEST_TIMEOUT_S = 300.0
 EXAMPLES_PER_OPERATION = {GenerationMode.POSITIVE: 6, GenerationMode.NEGATIVE: 4}
@@ -41,21 +39,6 @@ def request_bodies(document: dict[str, Any]) -> Iterator[tuple[str, str, dict[st
                 yield method.upper(), path, document["components"]["schemas"][reference.rsplit("/", 1)[-1]]
 
 
-def _fallen_run(database: Database, booking: dict[str, Any]) -> int:
-    """A run that a fall ended, as the recorder writes it: what the run-review bodies act on."""
-    from server.sessions.models import SessionRun
-
-    with database.session() as session:
-        version_id = session.scalar(
-            select(PrescriptionVersion.id).where(PrescriptionVersion.prescription_id == booking["prescription_id"])
-        )
-        run = SessionRun(scheduled_session_id=booking["id"], prescription_version_id=version_id, robot=booking["robot"],
-                         state="ended", outcome="fall", ended_at=dt.datetime.now(dt.UTC))  # fmt: skip
-        session.add(run)
-        session.commit()
-        return int(run.id)
-
-
 def test_every_request_body_has_an_example_the_api_accepts(client: TestClient, seed: Seed, database: Database) -> None:
     document = client.get("/openapi.json").json()
     admin = seed.headers("admin")
@@ -68,7 +51,7 @@ def test_every_request_body_has_an_example_the_api_accepts(client: TestClient, s
         "prescription_id": prescription_id,
         "user_id": seed.therapist_id,
         "therapist_id": seed.therapist_id,
-        "run_id": _fallen_run(database, booking),
+        "run_id": fallen_run(database, booking),
     }
     bodies = list(request_bodies(document))
     assert len(bodies) >= 9
