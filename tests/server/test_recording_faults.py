@@ -146,6 +146,7 @@ def test_defect_3_a_full_data_disk_stops_the_run_and_keeps_every_sample(console_
     assert_every_sample_kept(console, run_id)
     wait_for(lambda: console.health()["status"] == "ok", EVENT_TIMEOUT_S, "/health to be ok once there is space")
     assert console.post("/robot/reset").status_code == 200
+    assert console.acknowledge_pending() == run_id  # the stop moved the patient: acknowledged before a start
     start_ok(console, console.book())
 
 
@@ -164,6 +165,7 @@ def assert_reset_needed_then_free(console: Console, reason: str) -> None:
     assert refused.status_code != 200, "a new session started before anyone reset the robot"
     reset = console.post("/robot/reset")
     assert reset.status_code == 200, reset.text
+    console.acknowledge_pending()  # the interrupted run (build 9), when the loss ended one
     start_ok(console, console.book())
     console.wait_moving()
     estop = console.post("/estop")  # the web side's latch reaches the new worker
