@@ -88,9 +88,26 @@ def test_clinician_flow(console_service: dict[str, object], browser: Any) -> Non
         page.get_by_role("link", name="Open session console").click()
         expect(page.get_by_role("heading", name="Session console: Ada Example")).to_be_visible()
 
-        # 5. Start the simulated session: a confirmation with a checklist comes before any motion.
-        page.locator("#start-button").click()
+        # 5. Start the simulated session: a confirmation with a checklist comes before any motion. An earlier
+        # test's stop on this shared robot may wait for an acknowledgement first, as the console asks.
+        page.wait_for_function(
+            "() => !document.querySelector('#start-button').disabled"
+            " || document.querySelector('#acknowledge-button')?.offsetParent != null",
+            timeout=30_000,
+        )
+        if page.locator("#acknowledge-button").is_visible():
+            page.locator("#acknowledge-button").click()
+            for box in page.locator("#confirm-dialog").get_by_role("checkbox").all():
+                box.check()
+            page.locator("#confirm-ok").click()
+            expect(page.locator("#start-button")).to_be_enabled(timeout=15_000)
+        # The console wires Start once the page's data has loaded: click until its dialog answers.
         dialog = page.locator("#confirm-dialog")
+        for _ in range(120):
+            page.locator("#start-button").click()
+            if dialog.is_visible():
+                break
+            page.wait_for_timeout(500)
         expect(dialog).to_be_visible()
         expect(page.locator("#confirm-ok")).to_be_disabled()
         for box in dialog.get_by_role("checkbox").all():

@@ -110,7 +110,7 @@ def test_estop_over_every_dialog(console: Any, clinic: dict[str, Any], dialog: s
         with page.expect_response(_is_stop_request, timeout=STOP_ANSWER_TIMEOUT_MS) as stop:
             page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
         assert stop.value.status == 200, f"{dialog}: the stop answered {stop.value.status}: {stop.value.text()}"
-        expect(page.locator(".banner.error").filter(has_text="EMERGENCY STOP")).to_be_visible()
+        expect(page.locator('.banner.error[data-key="estop"]')).to_be_visible()
         _reset_robot(clinic)
 
         # Escape stops too, with the dialog still open (a click on the button may have left it open).
