@@ -149,8 +149,9 @@ def test_clinician_flow(console_service: dict[str, object], browser: Any) -> Non
 
         # 9. Export the log: the download succeeds and is not empty.
         page.wait_for_timeout(3000)  # the recorder writes the run's tail (2 s) after the stop
-        with page.expect_download() as download_info:
-            page.locator("#runs a[download]").first.click()
+        # An export is a job with a progress bar; the file downloads once it is built (issue 20, build 7).
+        with page.expect_download(timeout=180_000) as download_info:
+            page.get_by_role("button", name=re.compile(r"^Export run \d+ log$")).first.click()
         download = download_info.value
         assert download.failure() is None
         saved = ARTIFACTS / download.suggested_filename
