@@ -1,6 +1,6 @@
 """Motion cueing (issue 14 §5 targets): the suite through both algorithms on the default twin, planning
-time against the prescription's duration, and the per-tick cost of playing a plan against today's
-streaming washout + shaping + IK, both pipelines ticked alternately in the same run."""
+time against the prescription's duration, and the per-tick cost of playing a classical and an optimal plan
+(both play checked samples; the tick computes no washout), ticked alternately in the same run."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def _suite(names: list[str]) -> dict[str, Any]:
 
 
 def _tick_cost(ticks: int) -> dict[str, Any]:
-    """Per-tick compute while playing the same sway cue: classical (streaming) vs optimal (planned)."""
+    """Per-tick compute while playing the same sway cue's classical and optimal plans."""
     twin, config = default_twin(), SupervisorConfig()
     cue = {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.4, "frequency_hz": 0.3}
     pipelines = {

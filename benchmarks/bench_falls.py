@@ -37,6 +37,7 @@ from core.falls import (
 )
 from core.patient import PatientParameters, SimulatedPatient, random_patient, simulate
 from server.cli.falls_commands import detections, labelled_log, simulate_session
+from server.realtime.pipeline import start_along_checked_approach
 
 PERIOD_S = 0.001
 STEP_TARGET_US = 20.0
@@ -138,7 +139,7 @@ def normal_sessions(
             )
         )
         pipeline.heartbeat()
-        pipeline.start()
+        start_along_checked_approach(pipeline)
         for _ in range(round((duration_s + 30.0) / PERIOD_S)):
             pipeline.heartbeat()
             pipeline.tick(0)

@@ -46,6 +46,7 @@ from benchmarks.fault_harness import (
     wait_for,
 )
 from benchmarks.start_cancel import cancel_loading_start, planning_started
+from core.plan.config import SEGMENT_DURATION_MAX_S
 
 RATE_HZ = 1000.0
 START_CANCEL_TRIALS = 10  # issue 20's target: cancelled, with no motion afterwards, in 10 of 10
@@ -89,13 +90,15 @@ def _free(console: Console) -> bool:
 def _settle(console: Console) -> None:
     """Wait until the robot stands still, clear any latched stop and acknowledge it, ready for the next
     scenario."""
-    wait_for(
-        lambda: console.get("/robot/state").json().get("state") in ("idle", "stopped", "estop", "fault", "ready"),
-        EVENT_TIMEOUT_S,
-        "the robot to stand still",
-        0.05,
-    )
-    console.post("/robot/reset")
+
+    def settled() -> bool:
+        state = console.get("/robot/state").json().get("state")
+        if state in ("idle", "ready"):
+            return True
+        # A reset is refused while an emergency stop's ramp still runs: ask again until it is over.
+        return state in ("stopped", "estop", "fault") and console.post("/robot/reset").status_code == 200
+
+    wait_for(settled, EVENT_TIMEOUT_S, "the robot to stand still and be reset", 0.05)
     console.acknowledge_pending()
 
 
@@ -230,7 +233,7 @@ def full_disk(trials: int = 3, disk_mb: int = 48) -> dict[str, Any]:
                 stored, first, last = console.telemetry_ticks(run_id)
                 complete += stored == last - first + 1 and last >= int(events["drives_disabled"]["tick"])
                 wait_for(lambda: console.health()["status"] == "ok", EVENT_TIMEOUT_S, "/health ok again")
-                console.post("/robot/reset")
+                _settle(console)  # the stop moved the patient: reset, and the therapist acknowledges it
         finally:
             console.stop()
     return {
@@ -343,7 +346,7 @@ def run(quick: bool = False) -> dict[str, Any]:
             figures["stop_under_load"] = stop_under_load(console, quick)
 
             # /health during a long prescription load; an emergency stop then cancels the start (issue 20).
-            long_load = [{"cue": SHORT_SINE, "duration_s": 900.0 if quick else 3599.0}]
+            long_load = [{"cue": SHORT_SINE, "duration_s": 900.0 if quick else SEGMENT_DURATION_MAX_S}]
             session_id = console.book(segments=long_load)
             loader, _ = in_background(lambda: console.post(f"/sessions/{session_id}/start"))
             wait_for(lambda: planning_started(console, session_id), EVENT_TIMEOUT_S, "the load to begin")

@@ -2,7 +2,7 @@
 and emergency-stop latency from the call to the first stop set-point at the HAL (issue 5).
 
 Targets: tick compute p99 ≤ 100 µs; < 0.1 % of ticks more than 500 µs late; estop latency p99 ≤ 5 ms.
-Compute is measured in-process on the full twin pipeline (gait cue → washout → shaping → IK of both
+Compute is measured in-process on the full twin pipeline (a gait cue's checked plan sample → IK of both
 robots → every limit incl. inverse dynamics → HAL write/read with the simulated patient → FK → fall
 detectors → telemetry record). Lateness and estop latency are measured on a real spawned worker.
 """
@@ -21,10 +21,12 @@ from typing import Any
 import numpy as np
 
 from core.robot import default_twin
-from server.realtime.client import CommandRefused, WorkerClient
+from server.messages import CommandRefused
+from server.realtime.client import WorkerClient
 from server.realtime.loop import LATE_THRESHOLD_NS, FixedRateLoop, configure_realtime
 from server.realtime.pipeline import ideal_session
 from server.realtime.supervisor import SupervisorConfig
+from server.robotd.playback import plan_and_load
 
 PATIENT = {"body_mass_kg": 75.0, "height_m": 1.75}
 GAIT = {
@@ -124,8 +126,8 @@ def _settle_estop(client: WorkerClient, timeout_s: float = 5.0) -> None:
 
 
 def _start_session(client: WorkerClient, duration_s: float) -> None:
-    client.load_prescription({"segments": [{"cue": GAIT, "duration_s": duration_s}]}, PATIENT)
-    client.start_motion()
+    playback, _ = plan_and_load(client, {"segments": [{"cue": GAIT, "duration_s": duration_s}]}, PATIENT)
+    playback.start(client)
 
 
 def _lateness(client: _TappedClient, seconds: float, drain_period_s: float = 0.05) -> dict[str, Any]:

@@ -31,6 +31,7 @@ ADMIN = ("faultadmin", "fault-admin-password-1")
 SHORT_SINE = {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.3, "frequency_hz": 0.5}
 START_TIMEOUT_S = 900.0  # a cold numba cache on a loaded machine compiles for minutes
 EVENT_TIMEOUT_S = 60.0
+SERVE_EXIT_TIMEOUT_S = 300.0  # serve's exit includes its robot daemon's controlled stop and flush
 # Each booking in its own hour, across every console of this process (they may share a database).
 _booking_hours = itertools.count(int(time.time()) % 10_000 * 10)
 
@@ -89,8 +90,8 @@ def daemon_pid(data_dir: Path, robot: str = "twin-1") -> int | None:
 
 
 def stop_robot_daemon(data_dir: Path, robot: str = "twin-1") -> None:
-    """`serve` leaves its robot daemon running (one long-lived process per robot, by design), so whoever
-    started a console in a test or a benchmark stops the daemon too: SIGTERM, then SIGKILL after 60 s."""
+    """The robot daemon that a `serve` killed, or told `--keep-robot`, left running: whoever started a
+    console in a test or a benchmark stops it too (SIGTERM, then SIGKILL after 60 s)."""
     pid = daemon_pid(data_dir, robot)
     if pid is None:
         return
@@ -205,7 +206,7 @@ class Console:
                 os.kill(self.process.pid, signal.SIGCONT)
                 self.process.terminate()
             try:
-                self.process.wait(60)
+                self.process.wait(SERVE_EXIT_TIMEOUT_S)
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait(30)
@@ -326,7 +327,7 @@ class Console:
 
     def last_sample_utc_s(self, run_id: int) -> float | None:
         """UTC (POSIX s) of the last telemetry sample stored for the run."""
-        from server.sessions.recorder import decode_chunk
+        from server.robotd.records import decode_chunk
 
         with self.database() as connection:
             blobs = connection.execute(
@@ -339,7 +340,7 @@ class Console:
         """(samples stored, first tick, last tick) of a run's telemetry chunks."""
         import numpy as np
 
-        from server.sessions.recorder import decode_chunk
+        from server.robotd.records import decode_chunk
 
         with self.database() as connection:
             blobs = connection.execute(

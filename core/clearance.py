@@ -20,14 +20,13 @@ from __future__ import annotations
 import enum
 import functools
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numba
 import numpy as np
 
-from core.kinematics.ik import IK_CHUNK_POSES, IK_THREADS, IKSolution, LegViolation, PoseCollisions
+from core.kinematics.ik import IKSolution, LegViolation, PoseCollisions, for_each_chunk
 from core.kinematics.rotations import yaw_matrix
 from core.kinematics.twin import twin_inverse_kinematics, twin_platform_poses
 from core.robot import TwinRobot
@@ -39,6 +38,9 @@ IK_EXACT_BELOW_M = 0.10
 # The extra clearance normal motion keeps so that a controlled stop can brake before parts meet (the plan's
 # default `clearance_margin_m`, and the optimal planner's default).
 STOP_CLEARANCE_MARGIN_M = 0.02
+# Poses per block of the batch's broad phase: parts move little in this many control ticks, so the boxes they
+# sweep stay tight, and most pairs are ruled out once per block instead of at every pose.
+BROAD_PHASE_POSES = 64
 
 
 class PartKind(enum.IntEnum):
@@ -77,6 +79,7 @@ class PartArrays(NamedTuple):
     rail_z: float
     base_yaw: np.ndarray  # (2, 3, 3)
     base_origin: np.ndarray  # (2, 3)
+    platform_joints: np.ndarray  # (2, 6, 3) B_i, platform frames
 
 
 def _hexagon_order(joints: np.ndarray) -> np.ndarray:
@@ -264,33 +267,33 @@ def twin_segments_into(
     sliders: np.ndarray,  # (2, 6) slider x, base frames
     segments_out: np.ndarray,  # (P, 2, 3) world
 ) -> None:
-    """Every part's segment in the world frame for one twin pose."""
+    """Every part's segment in the world frame for one twin pose (scalars only: the tick allocates nothing)."""
     kind, robot, leg, local, half_length = parts.kind, parts.robot, parts.leg, parts.local, parts.half_length
     rail_y, rail_z, base_yaw, base_origin = parts.rail_y, parts.rail_z, parts.base_yaw, parts.base_origin
-    point = np.empty(3)
     for part in range(kind.shape[0]):
         side = robot[part]
         for end in range(2):
             if kind[part] == 0:  # ROD
                 if end == 0:
-                    point[0], point[1], point[2] = sliders[side, leg[part]], rail_y[side, leg[part]], rail_z
+                    x, y, z = sliders[side, leg[part]], rail_y[side, leg[part]], rail_z
                 else:
-                    point[:] = joints_world[side, leg[part]]
+                    joint = joints_world[side, leg[part]]
+                    x, y, z = joint[0], joint[1], joint[2]
             elif kind[part] == 1:  # SLIDER
                 offset = half_length[part] if end == 1 else -half_length[part]
-                point[0], point[1], point[2] = sliders[side, leg[part]] + offset, rail_y[side, leg[part]], rail_z
+                x, y, z = sliders[side, leg[part]] + offset, rail_y[side, leg[part]], rail_z
             elif kind[part] == 2:  # RAIL
-                point[:] = local[part, end]
+                x, y, z = local[part, end, 0], local[part, end, 1], local[part, end, 2]
             else:  # PLATFORM
-                for i in range(3):
-                    point[i] = positions[side, i]
-                    for k in range(3):
-                        point[i] += rotations[side, i, k] * local[part, end, k]
+                rotation, point = rotations[side], local[part, end]
+                x = positions[side, 0] + rotation[0, 0] * point[0]
+                x, y = x + rotation[0, 1] * point[1], positions[side, 1] + rotation[1, 0] * point[0]
+                x, y = x + rotation[0, 2] * point[2], y + rotation[1, 1] * point[1]
+                y, z = y + rotation[1, 2] * point[2], positions[side, 2] + rotation[2, 0] * point[0]
+                z = z + rotation[2, 1] * point[1] + rotation[2, 2] * point[2]
+            yaw = base_yaw[side]
             for i in range(3):
-                total = base_origin[side, i]
-                for k in range(3):
-                    total += base_yaw[side, i, k] * point[k]
-                segments_out[part, end, i] = total
+                segments_out[part, end, i] = base_origin[side, i] + yaw[i, 0] * x + yaw[i, 1] * y + yaw[i, 2] * z
 
 
 @numba.njit(cache=True, nogil=True)
@@ -323,12 +326,49 @@ def min_clearance_kernel(
 
 
 @numba.njit(cache=True, nogil=True)
+def _joints_world_into(parts: PartArrays, positions: np.ndarray, rotations: np.ndarray, out: np.ndarray) -> None:
+    """The platform joints p + R·B of both robots (2, 6, 3), base frames, for one twin pose."""
+    joints = parts.platform_joints
+    for side in range(2):
+        for leg in range(6):
+            for i in range(3):
+                lever = rotations[side, i, 0] * joints[side, leg, 0] + rotations[side, i, 1] * joints[side, leg, 1]
+                out[side, leg, i] = positions[side, i] + (lever + rotations[side, i, 2] * joints[side, leg, 2])
+
+
+@numba.njit(cache=True, nogil=True)
+def _segments_into(
+    parts: PartArrays, positions: np.ndarray, rotations: np.ndarray, sliders: np.ndarray, segments_out: np.ndarray
+) -> None:
+    joints = np.empty((2, 6, 3))
+    for pose in range(positions.shape[0]):
+        _joints_world_into(parts, positions[pose], rotations[pose], joints)
+        twin_segments_into(parts, positions[pose], rotations[pose], joints, sliders[pose], segments_out[pose])
+
+
+@numba.njit(cache=True, nogil=True)
+def _swept_boxes_into(segments: np.ndarray, boxes: np.ndarray) -> None:
+    """Each part's bounding box (P, 6: min xyz, max xyz) over a block of poses' segments (B, P, 2, 3). A NaN
+    end (a rod that cannot reach) widens nothing: the narrow phase skips it too."""
+    boxes[:, :3] = np.inf
+    boxes[:, 3:] = -np.inf
+    for pose in range(segments.shape[0]):
+        for part in range(segments.shape[1]):
+            for end in range(2):
+                for i in range(3):
+                    value = segments[pose, part, end, i]
+                    if value < boxes[part, i]:
+                        boxes[part, i] = value
+                    if value > boxes[part, 3 + i]:
+                        boxes[part, 3 + i] = value
+
+
+@numba.njit(cache=True, nogil=True)
 def _batch_clearance(
     parts: PartArrays,
     pairs: np.ndarray,
     positions: np.ndarray,  # (N, 2, 3)
     rotations: np.ndarray,  # (N, 2, 3, 3)
-    joints_world: np.ndarray,  # (N, 2, 6, 3)
     sliders: np.ndarray,  # (N, 2, 6)
     all_pairs: bool,
     exact_below: float,
@@ -336,34 +376,58 @@ def _batch_clearance(
     pair_out: np.ndarray,  # (N,)
     pair_clearance_out: np.ndarray,  # (N, K) when all_pairs
 ) -> None:
+    """Per pose: every pair's clearance (`all_pairs`), or the smallest with `min_clearance_kernel`. Poses go in
+    blocks of `BROAD_PHASE_POSES`: a pair whose parts' boxes, swept over the whole block, stay `exact_below`
+    apart cannot come closer at any pose of it, so the narrow phase skips it (the minimum stays exact, and
+    ties keep the first pair in `pairs`' order)."""
     radius = parts.radius
-    segments = np.empty((parts.kind.shape[0], 2, 3))
-    boxes = np.empty((parts.kind.shape[0], 6))
-    for pose in range(positions.shape[0]):
-        twin_segments_into(parts, positions[pose], rotations[pose], joints_world[pose], sliders[pose], segments)
+    part_count = parts.kind.shape[0]
+    segments = np.empty((BROAD_PHASE_POSES, part_count, 2, 3))
+    swept = np.empty((part_count, 6))
+    boxes = np.empty((part_count, 6))
+    candidates = np.empty(pairs.shape[0], dtype=np.int64)
+    candidate_pairs = np.empty_like(pairs)
+    for start in range(0, positions.shape[0], BROAD_PHASE_POSES):
+        block = min(BROAD_PHASE_POSES, positions.shape[0] - start)
+        stop = start + block
+        _segments_into(parts, positions[start:stop], rotations[start:stop], sliders[start:stop], segments[:block])
         if all_pairs:
-            best, best_pair = np.inf, -1
-            for k in range(pairs.shape[0]):
-                a, b = pairs[k, 0], pairs[k, 1]
-                value = segment_distance(segments[a], segments[b]) - radius[a] - radius[b]
-                pair_clearance_out[pose, k] = value
-                if value < best:
-                    best, best_pair = value, k
-            clearance_out[pose], pair_out[pose] = best, best_pair
-        else:
-            clearance_out[pose], pair_out[pose] = min_clearance_kernel(segments, radius, pairs, boxes, exact_below)
+            for row in range(block):
+                best, best_pair = np.inf, -1
+                for k in range(pairs.shape[0]):
+                    a, b = pairs[k, 0], pairs[k, 1]
+                    value = segment_distance(segments[row, a], segments[row, b]) - radius[a] - radius[b]
+                    pair_clearance_out[start + row, k] = value
+                    if value < best:
+                        best, best_pair = value, k
+                clearance_out[start + row], pair_out[start + row] = best, best_pair
+            continue
+        _swept_boxes_into(segments[:block], swept)
+        count = 0
+        for k in range(pairs.shape[0]):
+            a, b = pairs[k, 0], pairs[k, 1]
+            gap = 0.0
+            for i in range(3):
+                gap = max(gap, swept[b, i] - swept[a, 3 + i], swept[a, i] - swept[b, 3 + i])
+            if gap - radius[a] - radius[b] < exact_below:
+                candidates[count] = k
+                candidate_pairs[count, 0], candidate_pairs[count, 1] = a, b
+                count += 1
+        for row in range(block):
+            best, best_pair = min_clearance_kernel(segments[row], radius, candidate_pairs[:count], boxes, exact_below)
+            clearance_out[start + row] = best
+            pair_out[start + row] = candidates[best_pair] if best_pair >= 0 else -1
 
 
 # --- The model ------------------------------------------------------------------------------------------
 
 
 class PoseInputs(NamedTuple):
-    """Per twin pose (N, 2 robots, ...): platform positions and rotations (base frames), the platform
-    joints p + R·B and the slider positions: what places every part."""
+    """Per twin pose (N, 2 robots, ...): platform positions and rotations (base frames) and the slider
+    positions: what places every part."""
 
     positions: np.ndarray  # (N, 2, 3)
     rotations: np.ndarray  # (N, 2, 3, 3)
-    joints_world: np.ndarray  # (N, 2, 6, 3)
     sliders: np.ndarray  # (N, 2, 6)
 
 
@@ -406,6 +470,7 @@ class TwinClearance:
             self.rail_z,
             self.base_yaw,
             self.base_origin,
+            np.ascontiguousarray([r.platform_joints_m for r in robots], dtype=float),
         )
         # Pairs that can come within IK_EXACT_BELOW_M of the margin first (a pose-independent bound says
         # which), then closest first at neutral, so that the running minimum prunes the rest early.
@@ -459,15 +524,8 @@ class TwinClearance:
         sides = self.twin.sides
         positions = np.ascontiguousarray(np.stack([platform_poses[s][0] for s in sides], axis=1), dtype=float)
         rotations = np.ascontiguousarray(np.stack([platform_poses[s][1] for s in sides], axis=1), dtype=float)
-        joints = [twin_robot.platform_joints_m for twin_robot in (self.twin.robot_for(s) for s in sides)]
-        joints_world = np.ascontiguousarray(
-            np.stack(
-                [positions[:, r, None, :] + np.einsum("nij,lj->nli", rotations[:, r], joints[r]) for r in range(2)],
-                axis=1,
-            )
-        )
         sliders = np.ascontiguousarray(np.stack([solutions[s].slider_positions_m for s in sides], axis=1))
-        return PoseInputs(positions, rotations, joints_world, sliders)
+        return PoseInputs(positions, rotations, sliders)
 
     def _run(
         self, pairs: np.ndarray, all_pairs: bool, inputs: PoseInputs, exact_below: float = np.inf
@@ -478,14 +536,12 @@ class TwinClearance:
         per_pair = np.empty((count if all_pairs else 0, len(pairs)))
         pairs = np.ascontiguousarray(pairs)
 
-        def run_chunk(start: int) -> None:
-            chunk = slice(start, start + IK_CHUNK_POSES)
+        def run_chunk(chunk: slice) -> None:
             _batch_clearance(
                 self.arrays,
                 pairs,
                 inputs.positions[chunk],
                 inputs.rotations[chunk],
-                inputs.joints_world[chunk],
                 inputs.sliders[chunk],
                 all_pairs,
                 exact_below,
@@ -494,13 +550,7 @@ class TwinClearance:
                 per_pair[chunk],
             )
 
-        starts = range(0, count, IK_CHUNK_POSES)
-        if len(starts) > 1 and IK_THREADS > 1:  # the kernel releases the GIL: chunks run on both cores
-            with ThreadPoolExecutor(IK_THREADS) as pool:
-                list(pool.map(run_chunk, starts))
-        else:
-            for start in starts:
-                run_chunk(start)
+        for_each_chunk(count, run_chunk)
         return clearance, closest, per_pair
 
     def _pair_clearances(self, pairs: np.ndarray, inputs: PoseInputs) -> np.ndarray:
@@ -544,15 +594,7 @@ class TwinClearance:
         """Every part's segment in the world frame, (N, P, 2, 3); radii in `table.radius`."""
         inputs = self._inputs(stance_poses)
         out = np.empty((len(inputs.positions), len(self.table.names), 2, 3))
-        for pose in range(len(out)):
-            twin_segments_into(
-                self.arrays,
-                inputs.positions[pose],
-                inputs.rotations[pose],
-                inputs.joints_world[pose],
-                inputs.sliders[pose],
-                out[pose],
-            )
+        _segments_into(self.arrays, inputs.positions, inputs.rotations, inputs.sliders, out)
         return out
 
 

@@ -31,8 +31,10 @@ import numba
 import numpy as np
 
 from core.kinematics import (
+    IK_CHUNK_POSES,
     _as_poses,
     euler_from_rotation,
+    for_each_chunk,
     leg_kernel,
     rotation_matrices,
     stance_origin_world,
@@ -486,7 +488,7 @@ def _robot_forces_batch(
     return -1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _twin_batch(
     stance_poses: np.ndarray,
     stance_rates: np.ndarray,
@@ -818,28 +820,58 @@ class TwinInverseDynamics:
         *,
         with_forces: bool,
     ) -> None:
-        failed = _twin_batch(
-            poses,
-            rates,
-            accelerations,
-            self.origin,
-            self._base_rotations,
-            self._base_origins,
-            self._levers,
-            self._neutral_rotations,
-            self._geometry,
-            self._scalars,
-            self._top_com,
-            self._top_inertia,
-            GRAVITY_VECTOR,
-            self._stance_motion,
-            self._scratch,
-            motions,
-            out,
-            with_forces,
-        )
+        count = poses.shape[0]
+        if count <= IK_CHUNK_POSES:  # the tick and short batches: one call, the preallocated scratch
+            failed = self._batch(
+                poses, rates, accelerations, motions, out, with_forces, self._stance_motion, self._scratch
+            )
+        else:  # chunks on both cores, each with its own scratch; the earliest failure counts
+            failures: list[int] = []
+
+            def run_chunk(rows: slice) -> None:
+                arrays = (poses[rows], rates[rows], accelerations[rows], motions[rows], out[rows])
+                failed = self._batch(*arrays, with_forces, np.zeros(24), np.zeros(SCRATCH_SIZE))
+                failures.append(failed if failed < 0 else failed + rows.start)
+
+            for_each_chunk(count, run_chunk)
+            failed = min((f for f in failures if f >= 0), default=-1)
         if failed >= 0:
             raise DynamicsError(failed, f"stance pose {poses[failed].tolist()} is unreachable or singular")
+
+    def _batch(
+        self,
+        poses: np.ndarray,
+        rates: np.ndarray,
+        accelerations: np.ndarray,
+        motions: np.ndarray,
+        out: np.ndarray,
+        with_forces: bool,
+        stance_motion: np.ndarray,
+        scratch: np.ndarray,
+    ) -> int:
+        """`_twin_batch` over these samples with this scratch; the first failing sample or −1."""
+        return int(
+            _twin_batch(
+                poses,
+                rates,
+                accelerations,
+                self.origin,
+                self._base_rotations,
+                self._base_origins,
+                self._levers,
+                self._neutral_rotations,
+                self._geometry,
+                self._scalars,
+                self._top_com,
+                self._top_inertia,
+                GRAVITY_VECTOR,
+                stance_motion,
+                scratch,
+                motions,
+                out,
+                with_forces,
+            )
+        )
 
 
 # --- The paper's dynamics scenarios (§3.2.1–3.2.2) ---------------------------------------------------------

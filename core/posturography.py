@@ -1,11 +1,13 @@
 """Posturography metrics for one trial (issue 8; REFERENCE.md §5).
 
-COP sway measures after Prieto et al. (1996), IEEE Trans Biomed Eng 43:956: path length (Prieto's total
-excursions), mean velocity (total excursions over the trial time), mean and RMS distance from the mean COP,
-AP/ML range, and the 95 % ellipse area
-π·χ²₀.₉₅(2)·√(λ₁λ₂) = π·5.991·√(λ₁λ₂) from the eigenvalues of the COP covariance. That is the
-*prediction* ellipse (expected to hold 95 % of the COP samples), not the confidence ellipse of the
-mean COP (Schubert & Kirchner 2014, Gait Posture 39:518).
+COP sway measures after Prieto et al. (1996), IEEE Trans Biomed Eng 43:956, on the COP referred to its
+mean (definitions in docs/posturography.md): total excursions (path length), mean velocity (resultant, AP,
+ML: excursions over the trial time), mean and RMS distance, AP/ML range, Prieto's 95 % confidence circle
+and ellipse areas, sway area per second and mean frequency. Beside them the product's own 95 % ellipse,
+π·χ²₀.₉₅(2)·√(λ₁λ₂) = π·5.991·√(λ₁λ₂) from the eigenvalues of the sample covariance: the *prediction*
+ellipse (expected to hold 95 % of the COP samples), not the confidence ellipse of the mean COP (Schubert &
+Kirchner 2014, Gait Posture 39:518); for a long trial Prieto's "confidence" ellipse is the same ellipse
+(2·F₀.₉₅(2, ∞) = χ²₀.₉₅(2)).
 
 Sensory Organization Test (NeuroCom): equilibrium score ES = 100·(12.5° − (θmax − θmin))/12.5° on the AP
 sway angle of the centre of gravity (12.5° is the AP limit of stability, 8.5° forward + 4° back); a fall
@@ -24,6 +26,7 @@ import numpy as np
 from core.patient import ParameterError, require_in_range
 
 CHI2_2DOF_95 = 5.991  # χ² quantile, 2 degrees of freedom, p = 0.95
+Z_95_ONE_SIDED = 1.645  # Prieto's z.05 for the 95 % confidence circle
 SWAY_LIMIT_RAD = math.radians(12.5)
 NEUROCOM_COG_HEIGHT_FRACTION = 0.5527  # COG height above the ankle used by NeuroCom, fraction of height
 SOT_CONDITIONS = (1, 2, 3, 4, 5, 6)
@@ -39,8 +42,10 @@ class SwayMetrics:
     """Prieto (1996) sway measures of one COP trace; metres and seconds."""
 
     duration_s: float
-    path_length_m: float
+    path_length_m: float  # total excursions
     mean_velocity_m_s: float
+    mean_velocity_ap_m_s: float
+    mean_velocity_ml_m_s: float
     mean_distance_m: float
     rms_distance_m: float
     rms_ap_m: float
@@ -48,6 +53,10 @@ class SwayMetrics:
     range_ap_m: float
     range_ml_m: float
     ellipse_area_95_m2: float  # prediction ellipse
+    confidence_circle_area_95_m2: float
+    confidence_ellipse_area_95_m2: float
+    sway_area_per_second_m2_s: float
+    mean_frequency_hz: float
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -68,23 +77,42 @@ def _as_trace(time_s: np.ndarray, cop_m: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def sway_metrics(time_s: np.ndarray, cop_m: np.ndarray) -> SwayMetrics:
-    """Sway measures of a COP trace (N, 2) in (AP, ML). Covariance uses N − 1 (sample covariance)."""
+    """Sway measures of a COP trace (N, 2) in (AP, ML), over T = the trace's duration. Prieto's moments use
+    1/N; the prediction ellipse uses the sample covariance (N − 1)."""
+    from scipy.stats import f as f_distribution
+
     time_s, cop_m = _as_trace(time_s, cop_m)
+    count = len(time_s)
     duration_s = float(time_s[-1] - time_s[0])
-    path_length_m = float(np.sum(np.linalg.norm(np.diff(cop_m, axis=0), axis=1)))
+    steps = np.diff(cop_m, axis=0)
+    path_length_m = float(np.sum(np.linalg.norm(steps, axis=1)))
     centred = cop_m - cop_m.mean(axis=0)
+    distance = np.linalg.norm(centred, axis=1)
+    mean_distance_m = float(np.mean(distance))
+    rms_distance_m = float(np.sqrt(np.mean(distance**2)))
     eigenvalues = np.linalg.eigvalsh(np.cov(centred, rowvar=False))
+    ap, ml = centred[:, 0], centred[:, 1]
+    distance_sd = math.sqrt(max(rms_distance_m**2 - mean_distance_m**2, 0.0))
+    moment_determinant = max(np.mean(ap**2) * np.mean(ml**2) - np.mean(ap * ml) ** 2, 0.0)
+    f_95 = float(f_distribution.ppf(0.95, 2, count - 2))
+    mean_velocity_m_s = path_length_m / duration_s
     return SwayMetrics(
         duration_s=duration_s,
         path_length_m=path_length_m,
-        mean_velocity_m_s=path_length_m / duration_s,
-        mean_distance_m=float(np.mean(np.linalg.norm(centred, axis=1))),
-        rms_distance_m=float(np.sqrt(np.mean(np.sum(centred**2, axis=1)))),
-        rms_ap_m=float(np.sqrt(np.mean(centred[:, 0] ** 2))),
-        rms_ml_m=float(np.sqrt(np.mean(centred[:, 1] ** 2))),
+        mean_velocity_m_s=mean_velocity_m_s,
+        mean_velocity_ap_m_s=float(np.sum(np.abs(steps[:, 0]))) / duration_s,
+        mean_velocity_ml_m_s=float(np.sum(np.abs(steps[:, 1]))) / duration_s,
+        mean_distance_m=mean_distance_m,
+        rms_distance_m=rms_distance_m,
+        rms_ap_m=float(np.sqrt(np.mean(ap**2))),
+        rms_ml_m=float(np.sqrt(np.mean(ml**2))),
         range_ap_m=float(np.ptp(cop_m[:, 0])),
         range_ml_m=float(np.ptp(cop_m[:, 1])),
         ellipse_area_95_m2=float(math.pi * CHI2_2DOF_95 * math.sqrt(max(eigenvalues[0], 0.0) * eigenvalues[1])),
+        confidence_circle_area_95_m2=math.pi * (mean_distance_m + Z_95_ONE_SIDED * distance_sd) ** 2,
+        confidence_ellipse_area_95_m2=2.0 * math.pi * f_95 * math.sqrt(moment_determinant),
+        sway_area_per_second_m2_s=float(np.sum(np.abs(ap[1:] * ml[:-1] - ap[:-1] * ml[1:]))) / (2.0 * duration_s),
+        mean_frequency_hz=mean_velocity_m_s / (2.0 * math.pi * mean_distance_m) if mean_distance_m > 0 else 0.0,
     )
 
 

@@ -8,6 +8,8 @@ refused with a `DescriptionError` that names the field, the value and the limit.
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import math
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -393,6 +395,13 @@ def twin_to_dict(twin: TwinRobot) -> dict[str, Any]:
         }
         | {"parts": asdict(twin.parts)},
     }
+
+
+def twin_digest(twin: TwinRobot) -> str:
+    """A hash of the whole description (geometry, limits, masses, layout): a plan made for another robot
+    description is never played on this one."""
+    canonical = json.dumps(twin_to_dict(twin), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
 def _build(cls: type, section: str, data: Mapping[str, Any], **overrides: Any) -> Any:

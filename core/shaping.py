@@ -7,9 +7,9 @@ coordinate and refuses a design that attenuates less than `required_attenuation_
 
 The section primitives here are the one implementation of a second-order section (transposed direct
 form II, the structure of `scipy.signal.lfilter`): batch paths run `lfilter` section by section,
-populations run a compiled kernel with one coefficient set per row, streaming paths call `section_step`.
-All three give the same numbers. Tustin (bilinear) discretisation maps each continuous section on its
-own, so a cascade discretised section by section equals the discretised cascade.
+populations run a compiled kernel (`section_step`) with one coefficient set per row; both give the same
+numbers. Tustin (bilinear) discretisation maps each continuous section on its own, so a cascade
+discretised section by section equals the discretised cascade.
 """
 
 from __future__ import annotations
@@ -229,38 +229,16 @@ def _worst_attenuation_db(sos: np.ndarray, params: ShapingParameters, fs: float)
     return float(np.min(attenuation_db(sos, band, 1.0 / fs)))
 
 
-@numba.njit(cache=True)
-def _shape_step(sos: np.ndarray, state: np.ndarray, pose: np.ndarray, out: np.ndarray) -> None:
-    for coordinate in range(6):
-        value = pose[coordinate]
-        for section in range(sos.shape[0]):
-            value = section_step(sos[section], state[coordinate, section], value)
-        out[coordinate] = value
-
-
 class CommandShaper:
-    """Shapes platform pose commands (relative to neutral, so rest is the zero state) one tick at a time."""
+    """Shapes platform pose commands (relative to neutral, so rest is the zero state) over whole signals."""
 
     def __init__(self, params: ShapingParameters, sample_period_s: float) -> None:
         self.params = params
         self.sample_period_s = float(sample_period_s)
         self.sos = np.ascontiguousarray(shaping_sections(params, sample_period_s))
-        self._state = np.zeros((6, self.sos.shape[0], 2))
-        self._out = np.zeros(6)
-        _shape_step(self.sos, self._state, self._out, self._out)  # compile now, not on the first tick
-        self.reset()
-
-    def reset(self) -> None:
-        self._state[:] = 0.0
-        self._out[:] = 0.0
-
-    def step(self, pose: np.ndarray) -> np.ndarray:
-        """Shaped pose (6,): a view of an internal buffer, overwritten by the next step."""
-        _shape_step(self.sos, self._state, pose, self._out)
-        return self._out
 
     def shape_batch(self, poses: np.ndarray) -> np.ndarray:
-        """Shaped poses (N, 6) from rest; independent of the streaming state."""
+        """Shaped poses (N, 6) from rest."""
         poses = np.asarray(poses, dtype=float)
         if poses.ndim != 2 or poses.shape[1] != 6:
             raise ValueError(f"poses: shape {poses.shape}, expected (N, 6)")

@@ -290,12 +290,14 @@ class TwinKernels:
         velocity_out: np.ndarray,
         acceleration_out: np.ndarray,
         violation: np.ndarray,
+        elapsed_s: float | None = None,
     ) -> None:
-        """Slider set-points (12) for a stance pose, their finite-difference velocity and acceleration,
-        and the first broken limit in `violation` (code, axis, value, limit; code 0 when none)."""
+        """Slider set-points (12) for a stance pose, their finite-difference velocity and acceleration over
+        `elapsed_s` since the previous set-point (one period unless a late tick skipped ahead), and the first
+        broken limit in `violation` (code, axis, value, limit; code 0 when none)."""
         twin_command_kernel(
             stance_pose,
-            self.period_s,
+            self.period_s if elapsed_s is None else elapsed_s,
             previous_sliders,
             previous_velocity,
             self.stance_origin,

@@ -16,15 +16,16 @@ with R = Rx·Ry·Rz; velocity and acceleration are pose derivatives (Euler-angle
    The integrations are folded into the filters (position = s/((s² + …)(s + ω_a′)) · a), so no pure
    integrator can drift.
 
-Every filter is a first- or second-order section discretised by Tustin at construction. The streaming
-front end (`StreamingWashout.step`, one compiled kernel, no allocation) and the batch front end
-(`washout_batch`, `scipy.signal.lfilter` over whole arrays, in cache-sized chunks that carry the
-filter states, so the result does not depend on the chunk size) share those coefficients.
+Every filter is a first- or second-order section discretised by Tustin at construction. There is one
+implementation, `run_washout`: `washout_batch` runs it over whole signals (`scipy.signal.lfilter`, in
+cache-sized chunks that carry the filter states, so the result does not depend on the chunk size), and
+populations run it over stacked designs. The real-time tick computes no washout: it plays the samples a
+plan computed here and checked (`core.plan.motion`).
 
 The tilt-rate limiter is the one sequential nonlinearity. Everything upstream of it is computed first
 and vectorised; if no step of the commanded tilt exceeds the limit the limiter is the identity and the
-batch path stays pure numpy; otherwise the batch path runs the same compiled limiter the streaming
-step uses, over the two tilt signals only (a compiled loop, exact, a few ms per hour of data).
+path stays pure numpy; otherwise a compiled limiter runs over the two tilt signals only (a compiled
+loop, exact, a few ms per hour of data).
 The Euler-rate transform uses the tilt attitude, known before the rotational channel, rather than
 the full attitude (which would feed the channel's own output back); the washed-out rotation is
 small and transient, the tilt is the sustained part.
@@ -47,12 +48,10 @@ from core.shaping import (
     filter_sections,
     require_finite,
     require_sample_period,
-    section_step,
     tustin_first_order,
     tustin_second_order,
 )
 
-OUTPUT_SIZE = 18  # pose (6), velocity (6), acceleration (6)
 HEAD_HEIGHT_MAX_M = 2.5
 BATCH_CHUNK_SAMPLES = 32_768
 
@@ -234,7 +233,7 @@ def _section_bank(values: Mapping[str, np.ndarray], sample_period_s: float) -> n
     return np.stack([rows[index] for index in range(len(rows))], axis=-2)
 
 
-# --- Shared arithmetic (numpy and numba give the same numbers) ----------------------------------------
+# --- Signal arithmetic -------------------------------------------------------------------------------
 
 
 @numba.njit(cache=True, inline="always")
@@ -505,160 +504,3 @@ def washout_batch(
         input_limited=input_limited,
         tilt_rate_limited=tilt_rate_limited,
     )
-
-
-# --- Streaming ----------------------------------------------------------------------------------------
-
-# Streaming state rows: one section state per stage and channel.
-_TILT_STATE, _ANGLE_STATE, _RATE_STATE, _SQUARED_STATE, _VELOCITY_STATE = 0, 2, 5, 8, 11
-_POSITION_STATE, _POSITION_LAG_STATE, _STATE_ROWS = 14, 17, 20
-# Memory: previous tilt (roll, pitch), previous tilt rate (roll, pitch), previous rotation rate (3).
-_MEMORY_SIZE = 7
-INPUT_LIMITED, TILT_RATE_LIMITED, NON_FINITE_INPUT = 1, 2, 4
-
-
-@numba.njit(cache=True, inline="always")
-def _scaled_value(value: float, gain: float, limit: float) -> tuple[float, bool]:
-    scaled = gain * value
-    if scaled > limit:
-        return limit, True
-    if scaled < -limit:
-        return -limit, True
-    return scaled, False
-
-
-@numba.njit(cache=True)
-def _washout_step(
-    specific_force: np.ndarray,
-    angular_velocity: np.ndarray,
-    bank: np.ndarray,
-    scalars: np.ndarray,
-    state: np.ndarray,
-    memory: np.ndarray,
-    out: np.ndarray,
-) -> int:
-    """One sample of `run_washout`, same arithmetic, scalars only (nothing allocated)."""
-    for axis in range(3):
-        if not (np.isfinite(specific_force[axis]) and np.isfinite(angular_velocity[axis])):
-            return NON_FINITE_INPUT
-    dt, force_gain, force_limit, rate_gain, rate_limit_value = (
-        scalars[0],
-        scalars[1],
-        scalars[2],
-        scalars[3],
-        scalars[4],
-    )
-    tilt_step, gravity, first_order_break = scalars[5], scalars[6], scalars[7]
-    fx, lx = _scaled_value(specific_force[0], force_gain, force_limit)
-    fy, ly = _scaled_value(specific_force[1], force_gain, force_limit)
-    fz, lz = _scaled_value(specific_force[2], force_gain, force_limit)
-    wx, mx = _scaled_value(angular_velocity[0], rate_gain, rate_limit_value)
-    wy, my = _scaled_value(angular_velocity[1], rate_gain, rate_limit_value)
-    wz, mz = _scaled_value(angular_velocity[2], rate_gain, rate_limit_value)
-    flags = INPUT_LIMITED if (lx or ly or lz or mx or my or mz) else 0
-
-    lowpass_x = section_step(bank[TILT_LOWPASS], state[_TILT_STATE], fx)
-    lowpass_y = section_step(bank[TILT_LOWPASS], state[_TILT_STATE + 1], fy)
-    roll_command = np.arcsin(lowpass_y / gravity)
-    pitch_command = -np.arcsin(lowpass_x / gravity)
-    roll = _rate_limited(memory[0], roll_command, tilt_step)
-    pitch = _rate_limited(memory[1], pitch_command, tilt_step)
-    if roll != roll_command or pitch != pitch_command:
-        flags |= TILT_RATE_LIMITED
-    roll_rate = (roll - memory[0]) / dt
-    pitch_rate = (pitch - memory[1]) / dt
-    roll_acceleration = (roll_rate - memory[2]) / dt
-    pitch_acceleration = (pitch_rate - memory[3]) / dt
-    memory[0], memory[1], memory[2], memory[3] = roll, pitch, roll_rate, pitch_rate
-
-    cos_pitch = np.cos(pitch)
-    euler_roll = wx / cos_pitch
-    euler = (euler_roll, wy, wz - np.sin(pitch) * euler_roll)
-    attitude = (roll, pitch, 0.0)
-    for axis in range(3):
-        angle = section_step(bank[ROTATION_ANGLE], state[_ANGLE_STATE + axis], euler[axis])
-        angle_rate = section_step(bank[ROTATION_RATE], state[_RATE_STATE + axis], euler[axis])
-        out[3 + axis] = angle + attitude[axis]
-        out[9 + axis] = angle_rate + (roll_rate, pitch_rate, 0.0)[axis]
-        out[15 + axis] = (angle_rate - memory[4 + axis]) / dt + (roll_acceleration, pitch_acceleration, 0.0)[axis]
-        memory[4 + axis] = angle_rate
-
-    ca, cb, cc = np.cos(out[3]), np.cos(out[4]), np.cos(out[5])
-    sa, sb, sc = np.sin(out[3]), np.sin(out[4]), np.sin(out[5])
-    head = scalars[8]
-    if head != 0.0:  # `lever_arm_acceleration` of `body_rates` / `body_angular_acceleration`, scalar form
-        dr, dp, dy = out[9], out[10], out[11]
-        ar, ap = out[15], out[16]
-        wx, wy, wz = cb * cc * dr + sc * dp, -cb * sc * dr + cc * dp, sb * dr + dy
-        alpha_x = cb * cc * ar + sc * ap + (-sb * cc * dp - cb * sc * dy) * dr + cc * dy * dp
-        alpha_y = -cb * sc * ar + cc * ap + (sb * sc * dp - cb * cc * dy) * dr - sc * dy * dp
-        fx -= head * (alpha_y + wx * wz)
-        fy -= head * (-alpha_x + wy * wz)
-        fz -= head * -(wx * wx + wy * wy)
-    vz = fz + gravity
-    inertial = (
-        cb * cc * fx + -cb * sc * fy + sb * vz,
-        (ca * sc + sa * sb * cc) * fx + (ca * cc - sa * sb * sc) * fy + -sa * cb * vz,
-        (sa * sc - ca * sb * cc) * fx + (sa * cc + ca * sb * sc) * fy + ca * cb * vz - gravity,
-    )
-    for axis in range(3):
-        squared = section_step(bank[HIGHPASS_SQUARED], state[_SQUARED_STATE + axis], inertial[axis])
-        out[6 + axis] = section_step(bank[LAG], state[_VELOCITY_STATE + axis], squared)
-        out[12 + axis] = squared - first_order_break * out[6 + axis]
-        shaped = section_step(bank[POSITION], state[_POSITION_STATE + axis], inertial[axis])
-        out[axis] = section_step(bank[LAG], state[_POSITION_LAG_STATE + axis], shaped)
-    return flags
-
-
-class StreamingWashout:
-    """The washout one control tick at a time; filters designed at construction, nothing allocated per step."""
-
-    def __init__(self, params: WashoutParameters, sample_period_s: float) -> None:
-        self.params = params
-        self.sample_period_s = float(sample_period_s)
-        wd = design(params, sample_period_s)
-        self._bank = np.ascontiguousarray(wd.bank)
-        self._scalars = np.array(
-            [
-                self.sample_period_s,
-                wd.specific_force_gain,
-                wd.specific_force_limit_m_s2,
-                wd.angular_velocity_gain,
-                wd.angular_velocity_limit_rad_s,
-                wd.tilt_rate_step_rad,
-                GRAVITY_M_S2,
-                wd.first_order_break_rad_s,
-                wd.head_height_m,
-            ]
-        )
-        self._state = np.zeros((_STATE_ROWS, 2))
-        self._memory = np.zeros(_MEMORY_SIZE)
-        self._out = np.zeros(OUTPUT_SIZE)
-        self.input_limited = False
-        self.tilt_rate_limited = False
-        zero = np.zeros(3)
-        self.step(zero, zero)  # compile now, not on the first tick
-        self.reset()
-
-    def reset(self) -> None:
-        """Back to rest at neutral."""
-        self._state[:] = 0.0
-        self._memory[:] = 0.0
-        self._out[:] = 0.0
-        self.input_limited = False
-        self.tilt_rate_limited = False
-
-    def step(self, specific_force_m_s2: np.ndarray, angular_velocity_rad_s: np.ndarray) -> np.ndarray:
-        """Pose (6), velocity (6), acceleration (6) for one sample: a view of an internal buffer."""
-        flags = _washout_step(
-            specific_force_m_s2, angular_velocity_rad_s, self._bank, self._scalars, self._state, self._memory, self._out
-        )
-        if flags & NON_FINITE_INPUT:
-            raise ParameterError(
-                "specific_force_m_s2/angular_velocity_rad_s",
-                (np.asarray(specific_force_m_s2).tolist(), np.asarray(angular_velocity_rad_s).tolist()),
-                "must be finite (no NaN/inf)",
-            )
-        self.input_limited = bool(flags & INPUT_LIMITED)
-        self.tilt_rate_limited = bool(flags & TILT_RATE_LIMITED)
-        return self._out

@@ -14,6 +14,12 @@ fi
 # The local PostgreSQL when present; tests that need it skip with a reason when it cannot be reached.
 export SSP_REHAB_TEST_POSTGRES_URL="${SSP_REHAB_TEST_POSTGRES_URL:-postgresql+psycopg://postgres@127.0.0.1:5432/test}"
 
+# One warm numba cache for the whole run, compiled beside the lint and type checks (minutes on a clean clone):
+# the tests' workers and daemons then load the real-time kernels rather than each compiling them at its start.
+.venv-test/bin/python -m server.cli.main warm-up --json &
+warm_up=$!
+trap 'kill "$warm_up" 2>/dev/null || true' EXIT
 .venv-test/bin/ruff check core server benchmarks tests migrations
 .venv-test/bin/mypy
+wait "$warm_up"
 .venv-test/bin/python -m pytest "$@"

@@ -46,13 +46,18 @@ from server.errors import (
     StaleVersionError,
     WorkerUnavailableError,
 )
-from server.exports.jobs import ExportJobs
+from server.exports.jobs import KEEP_FINISHED_S, ExportJobs
 from server.file_modes import private_directory
 from server.observability.health import DatabaseProbe
 from server.prescriptions.preview import PreviewProcess
+from server.prescriptions.preview_jobs import PREVIEW_JOBS_DIRECTORY, PreviewJobStore
+from server.realtime.supervisor import SupervisorConfig
 from server.robotd.daemon import RobotDaemon
 from server.robotd.estop_listener import page_stop_url
-from server.robotd.link import DaemonLink, LocalLink
+from server.robotd.interfaces import RobotLink
+from server.robotd.link import DaemonLink, LocalLink, attach_robot
+from server.robotd.plan_store import PlanStore
+from server.robotd.planner import InlinePlanner
 from server.robotd.process import daemon_running
 from server.robotd.recovery import recover_open_runs
 from server.robotd.status import RobotPaths
@@ -64,11 +69,10 @@ from server.security import (
     SecurityHeadersMiddleware,
     document_security_responses,
     install_log_redaction,
+    invalid_field_detail,
     safe_validation_errors,
-    shown_value,
 )
-from server.sessions.recorder import TelemetryFanout
-from server.sessions.worker import RobotLink, attach_robot
+from server.sessions.fanout import TelemetryFanout
 from server.settings import Settings
 from server.viz.view import start_view
 
@@ -136,20 +140,7 @@ def _error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(InvalidFieldError)
     async def invalid(_request: Request, error: InvalidFieldError) -> JSONResponse:
-        # The same shape as FastAPI's own 422, so that clients read every refusal the same way.
-        detail = safe_validation_errors(
-            [
-                {
-                    "loc": ["body", *error.field.split(".")],
-                    "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
-                    "type": "value_error",
-                    # The parts apart, as pydantic's own errors carry them: clients word them in their units.
-                    "input": jsonable_encoder(error.value),
-                    "ctx": {"limit": error.limit},
-                }
-            ]
-        )
-        return JSONResponse({"detail": detail}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
+        return JSONResponse({"detail": invalid_field_detail(error)}, status_code=status.HTTP_422_UNPROCESSABLE_CONTENT)
 
     @app.exception_handler(PreconditionRequiredError)
     async def precondition_required(_request: Request, error: PreconditionRequiredError) -> JSONResponse:
@@ -323,6 +314,9 @@ def create_app(
                     worker=worker,
                     database=app.state.database,
                     journal_dir=None,
+                    planner=InlinePlanner(twin, settings.control_rate_hz, SupervisorConfig()),
+                    twin=twin,
+                    plan_store=PlanStore(settings.data_dir.resolve() / "plans", settings.plan_store_max_mb * 1_000_000),
                     chunk_period_s=settings.log_flush_interval_s,
                     shutdown_wait_s=0.0,  # an in-memory worker has no stop to wait for
                 )
@@ -344,7 +338,7 @@ def create_app(
                 with contextlib.suppress(asyncio.CancelledError):
                     await fanout_task
             if robot is not None:
-                await asyncio.to_thread(robot.close)  # a daemon keeps running; an in-process one stops
+                await asyncio.to_thread(robot.close)  # a daemon: `serve` decides on its exit; an in-process one stops
             await asyncio.to_thread(app.state.export_jobs.close)
             app.state.preview_process.close()
             if owned_engine is not None:
@@ -377,6 +371,8 @@ def create_app(
     app.state.fanout = None
     app.state.viz = None
     app.state.export_jobs = ExportJobs(settings.data_dir / "export-jobs")
+    # On disk, so that any web process answers a job's poll; kept as long as a finished export.
+    app.state.preview_jobs = PreviewJobStore(settings.data_dir / PREVIEW_JOBS_DIRECTORY, keep_s=KEEP_FINISHED_S)
     _security_middleware(app, settings)
     _error_handlers(app)
     _install_audit_journal(app, settings)

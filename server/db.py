@@ -299,8 +299,8 @@ def load_models() -> MetaData:
     import server.patients.models
     import server.prescriptions.models
     import server.reviews.models
+    import server.robotd.models
     import server.scheduling.models
-    import server.sessions.models
     import server.users.models  # noqa: F401  (imported for their tables)
 
     return Base.metadata

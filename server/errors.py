@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+from typing import Any
 
 
 class NotFoundError(LookupError):
@@ -23,10 +24,11 @@ class ConflictError(RuntimeError):
 class InvalidFieldError(ValueError):
     """A value that passed the schema but breaks a domain rule; names the field, the value and the limit."""
 
-    def __init__(self, field: str, value: object, limit: str) -> None:
+    def __init__(self, field: str, value: object, limit: str, *, details: dict[str, Any] | None = None) -> None:
         self.field = field
         self.value = value
         self.limit = limit
+        self.details = details or {}  # what else the check found (a refused plan's every breach), shown as is
         super().__init__(f"{field} = {value!r}: {limit}")
 
 

@@ -24,10 +24,14 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from fastapi import FastAPI
+from fastapi.encoders import jsonable_encoder
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.requests import cookie_parser
 from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.errors import InvalidFieldError
+from server.jsonable import to_jsonable
 
 CSRF_HEADER = "X-Requested-With"
 CSRF_HEADER_VALUE = "ssp-rehab"
@@ -346,6 +350,20 @@ def safe_validation_errors(errors: Iterable[Mapping[str, Any]]) -> list[dict[str
             item["input"] = "(not shown)" if _is_secret(error.get("loc", ())) else excerpt(error["input"])
         safe.append(_sendable(item))
     return safe
+
+
+def invalid_field_detail(error: InvalidFieldError) -> list[dict[str, Any]]:
+    """A domain refusal as the items of a 422's `detail`: the same shape as FastAPI's own, so that clients read
+    every refusal the same way (a preview job's refusal too, `server.prescriptions.preview`)."""
+    item = {
+        "loc": ["body", *error.field.split(".")],
+        "msg": f"{error.field} = {shown_value(error.field, error.value)}: {error.limit}",
+        "type": "value_error",
+        # The parts apart, as pydantic's own errors carry them: clients word them in their units.
+        "input": jsonable_encoder(error.value),
+        "ctx": {"limit": error.limit, **({"details": to_jsonable(error.details)} if error.details else {})},
+    }
+    return safe_validation_errors([item])
 
 
 _SECRET_PATTERNS = (

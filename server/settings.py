@@ -31,6 +31,13 @@ class Settings(BaseSettings):
     backend: Backend = Field(default="sim", description="HAL backend the real-time worker drives.")
     robot_file: Path | None = Field(default=None, description="Robot description TOML; default: the paper's twin.")
     control_rate_hz: int = Field(default=1000, ge=250, le=2000, description="Real-time loop rate (Hz).")
+    plan_store_max_mb: int = Field(
+        default=4096,
+        ge=100,
+        le=1_000_000,
+        description="Stored plans beyond this size (MB) go, least recently used first (a 20-minute plan is "
+        "about 90 MB); a plan that goes is made again when it is needed.",
+    )
     can_interface: str = Field(default="socketcan", description="python-can interface for --backend canopen.")
     can_channel: str = Field(default="can0", description="CAN channel for --backend canopen.")
     can_simulated_drives: int = Field(

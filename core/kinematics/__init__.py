@@ -24,6 +24,7 @@ from core.kinematics.ik import (
     UnreachablePoseError,
     _as_poses,
     as_poses,
+    for_each_chunk,
     inverse_kinematics,
     platform_joints_world,
     solve_ik_pose_rotation,
@@ -43,6 +44,7 @@ from core.kinematics.twin import (
     twin_inverse_kinematics,
     twin_platform_poses,
     twin_singularity_report,
+    violation_flag_stretches,
     violation_stretches,
 )
 
@@ -66,6 +68,7 @@ __all__ = [
     "euler_from_rotation",
     "euler_rate_matrices",
     "foot_plate_neutral_world",
+    "for_each_chunk",
     "forward_kinematics",
     "inverse_kinematics",
     "leg_geometry",
@@ -85,6 +88,7 @@ __all__ = [
     "twin_singularity_report",
     "twist_jacobian",
     "twist_row",
+    "violation_flag_stretches",
     "violation_stretches",
     "yaw_matrix",
 ]

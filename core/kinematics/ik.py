@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import enum
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -90,6 +91,18 @@ _as_poses = as_poses  # the name other modules imported before the split
 # Poses are solved in chunks of this many so that every temporary stays in cache.
 IK_THREADS = min(2, os.cpu_count() or 1)  # batches of more than one chunk use both cores
 IK_CHUNK_POSES = 4096
+
+
+def for_each_chunk(count: int, solve_chunk: Callable[[slice], None], chunk_size: int = IK_CHUNK_POSES) -> None:
+    """`solve_chunk(rows)` for consecutive slices of `count` rows; on both cores when there is more than one
+    chunk: callers write disjoint slices, with compiled kernels that release the GIL."""
+    chunks = [slice(start, start + chunk_size) for start in range(0, count, chunk_size)]
+    if len(chunks) > 1 and IK_THREADS > 1:
+        with ThreadPoolExecutor(IK_THREADS) as pool:
+            list(pool.map(solve_chunk, chunks))
+    else:
+        for rows in chunks:
+            solve_chunk(rows)
 
 
 @dataclass(frozen=True)
@@ -328,8 +341,7 @@ def _solve(
     base_cone = np.empty((count, 6))
     platform_cone = np.empty((count, 6))
 
-    def solve_chunk(start: int) -> None:
-        chunk = slice(start, start + IK_CHUNK_POSES)
+    def solve_chunk(chunk: slice) -> None:
         chunk_rotations = rotation_matrices(poses[chunk, 3:]) if rotations is None else rotations[chunk]
         _solve_chunk(
             geometry,
@@ -342,14 +354,7 @@ def _solve(
             singularity_check,
         )
 
-    starts = range(0, count, IK_CHUNK_POSES)
-    if len(starts) > 1 and IK_THREADS > 1:
-        # Chunks write disjoint slices; the compiled kernels release the GIL and run in parallel.
-        with ThreadPoolExecutor(IK_THREADS) as pool:
-            list(pool.map(solve_chunk, starts))
-    else:
-        for start in starts:
-            solve_chunk(start)
+    for_each_chunk(count, solve_chunk)
     return IKSolution(poses, sliders, violations, base_cone, platform_cone, robot)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numba
 import numpy as np
 
 from core.kinematics.conditioning import SingularityReport, singularity_report, stretches
@@ -11,6 +12,7 @@ from core.kinematics.ik import VIOLATION_REASONS, IKSolution, UnreachablePoseErr
 from core.kinematics.legs import leg_geometry
 from core.kinematics.rotations import euler_from_rotation, rotation_matrices, yaw_matrix
 from core.robot import TwinRobot
+from core.rotations import rotation_into
 
 
 def stance_origin_world(twin: TwinRobot) -> np.ndarray:
@@ -27,25 +29,70 @@ def foot_plate_neutral_world(twin: TwinRobot, side: str) -> np.ndarray:
     return np.asarray(placement.base_origin_m) + yaw_matrix(placement.base_yaw_rad) @ foot_in_base
 
 
+@numba.njit(cache=True, nogil=True)
+def _platform_poses_kernel(
+    stance_poses: np.ndarray,  # (N, 6)
+    origin: np.ndarray,  # (3,) stance origin, world
+    base_yaw: np.ndarray,  # (2, 3, 3) Y
+    base_origin: np.ndarray,  # (2, 3)
+    lever_world: np.ndarray,  # (2, 3) platform origin at neutral − stance origin, world
+    neutral_rotation_world: np.ndarray,  # (2, 3, 3) N = Y·R(neutral)
+    positions_out: np.ndarray,  # (2, N, 3)
+    rotations_out: np.ndarray,  # (2, N, 3, 3)
+) -> None:
+    """p = Yᵀ·(o + t + S·ℓ − o_b) and R = Yᵀ·S·N per stance pose (t, S) and robot."""
+    stance_rotation = np.empty((3, 3))
+    world_rotation = np.empty((3, 3))
+    world = np.empty(3)
+    for pose in range(stance_poses.shape[0]):
+        rotation_into(stance_poses[pose, 3], stance_poses[pose, 4], stance_poses[pose, 5], stance_rotation)
+        for side in range(2):
+            for i in range(3):
+                lever = stance_rotation[i, 0] * lever_world[side, 0] + stance_rotation[i, 1] * lever_world[side, 1]
+                lever += stance_rotation[i, 2] * lever_world[side, 2]
+                world[i] = origin[i] + stance_poses[pose, i] + lever - base_origin[side, i]
+                for j in range(3):
+                    total = stance_rotation[i, 0] * neutral_rotation_world[side, 0, j]
+                    total += stance_rotation[i, 1] * neutral_rotation_world[side, 1, j]
+                    world_rotation[i, j] = total + stance_rotation[i, 2] * neutral_rotation_world[side, 2, j]
+            for i in range(3):
+                yaw = base_yaw[side]
+                positions_out[side, pose, i] = yaw[0, i] * world[0] + yaw[1, i] * world[1] + yaw[2, i] * world[2]
+                for j in range(3):
+                    total = yaw[0, i] * world_rotation[0, j] + yaw[1, i] * world_rotation[1, j]
+                    rotations_out[side, pose, i, j] = total + yaw[2, i] * world_rotation[2, j]
+
+
 def twin_platform_poses(twin: TwinRobot, stance_poses: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Each robot's platform (positions (N, 3), rotations (N, 3, 3)) in its own base frame, for the
     stance frame moved by `stance_poses` (N, 6) from neutral. Both feet move as one rigid body."""
     stance_poses = as_poses(stance_poses)
-    stance_rotation = rotation_matrices(stance_poses[:, 3:])
     origin = stance_origin_world(twin)
-    result = {}
-    for side in twin.sides:
+    base_yaw, base_origin, lever_world, neutral_rotation_world = (
+        np.empty((2, 3, 3)),
+        np.empty((2, 3)),
+        np.empty((2, 3)),
+        np.empty((2, 3, 3)),
+    )
+    for index, side in enumerate(twin.sides):
         placement, robot = twin.placement(side), twin.robot_for(side)
-        base_yaw = yaw_matrix(placement.base_yaw_rad)
-        base_origin = np.asarray(placement.base_origin_m)
+        base_yaw[index] = yaw_matrix(placement.base_yaw_rad)
+        base_origin[index] = placement.base_origin_m
         neutral = np.asarray(robot.neutral_pose)
-        neutral_rotation_world = base_yaw @ rotation_matrices(neutral[None, 3:])[0]
-        lever_world = base_origin + base_yaw @ neutral[:3] - origin
-        platform_world = origin + stance_poses[:, :3] + stance_rotation @ lever_world
-        positions = (platform_world - base_origin) @ base_yaw  # = base_yawᵀ · (world − origin)
-        rotations = base_yaw.T @ stance_rotation @ neutral_rotation_world
-        result[side] = (positions, rotations)
-    return result
+        neutral_rotation_world[index] = base_yaw[index] @ rotation_matrices(neutral[None, 3:])[0]
+        lever_world[index] = base_origin[index] + base_yaw[index] @ neutral[:3] - origin
+    positions, rotations = np.empty((2, len(stance_poses), 3)), np.empty((2, len(stance_poses), 3, 3))
+    _platform_poses_kernel(
+        np.ascontiguousarray(stance_poses),
+        origin,
+        base_yaw,
+        base_origin,
+        lever_world,
+        neutral_rotation_world,
+        positions,
+        rotations,
+    )
+    return {side: (positions[index], rotations[index]) for index, side in enumerate(twin.sides)}
 
 
 def twin_inverse_kinematics(
@@ -89,12 +136,19 @@ def violation_stretches(
 ) -> dict[str, dict[str, dict[str, object]]]:
     """Every limit each robot breaks over a trajectory: per robot and reason, the number of samples and
     each stretch of consecutive samples (from_s, to_s). All of them, not a first few."""
+    flags = {side: np.bitwise_or.reduce(solution.violations, axis=1) for side, solution in solutions.items()}
+    return violation_flag_stretches(flags, times_s)
+
+
+def violation_flag_stretches(
+    flags: dict[str, np.ndarray], times_s: np.ndarray
+) -> dict[str, dict[str, dict[str, object]]]:
+    """`violation_stretches` from each robot's `LegViolation` flags of all its legs per sample (N,)."""
     report: dict[str, dict[str, dict[str, object]]] = {}
-    for side, solution in solutions.items():
-        flags = np.bitwise_or.reduce(solution.violations, axis=1)
+    for side, side_flags in flags.items():
         by_reason: dict[str, dict[str, object]] = {}
         for flag, reason in VIOLATION_REASONS.items():
-            hit = (flags & np.uint8(flag)) != 0
+            hit = (side_flags & np.uint8(flag)) != 0
             if np.any(hit):
                 by_reason[reason] = {
                     "samples": int(np.sum(hit)),

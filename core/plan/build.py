@@ -3,8 +3,9 @@ settings) → the checked plan the real-time worker plays.
 
     prescription (core.plan.prescription) → per segment: the robot's limits tightened by the segment's,
     with the stop margin for normal motion; the washout and shaping parameter sets; the cue generator
-    → cueing: classical (the worker runs washout and shaping tick by tick) or optimal (the stance trajectory
-    is planned here from the whole cue, `core.optimal_cueing`) → the independent check (`core.plan.check`)
+    → cueing: classical (washout and shaping over the whole cue, `core.plan.timeline`) or optimal (the
+    stance trajectory planned from the whole cue, `core.optimal_cueing`) → the independent check
+    (`core.plan.check`); the worker plays the checked samples and computes no cueing of its own
 
 What depends on the robot or the rate (a limit may only tighten the robot's; the shaper at this rate; the
 soft start within the segment) is checked here, with the same error shape as the model's
@@ -13,7 +14,7 @@ soft start within the segment) is checked here, with the same error shape as the
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -28,12 +29,14 @@ from core.perception import head_height_m
 from core.plan.check import PrescriptionRejected, PrescriptionReport, check_plan
 from core.plan.config import DEFAULT_CONTROL_RATE_HZ, PlanConfig
 from core.plan.limits import LimitOverrideError, SessionLimits
+from core.plan.motion import PLANNED_SHARE, PlannedMotion
 from core.plan.prescription import Prescription, PrescriptionBody, PrescriptionError, Segment, parse_prescription
 from core.plan.timeline import segment_cue
-from core.robot import TwinRobot
+from core.robot import TwinRobot, twin_digest
 from core.shaping import CommandShaper, ParameterError, ShapingParameters
 from core.washout import WashoutParameters
 
+Progress = Callable[[float], None]
 CONTROL_RATE_RANGE_HZ = (10, 10_000)  # the cue generators sample at least every 0.1 s; the worker allows less
 
 
@@ -100,6 +103,15 @@ class PrescriptionPlan:
     control_rate_hz: int
     config: PlanConfig
     patient: PatientSetup | None = None
+    robot_digest: str = ""  # `core.robot.twin_digest` of the robot it was made for
+    motion: PlannedMotion | None = None  # every tick as the worker plays it (set by `plan_prescription`)
+
+    @property
+    def played(self) -> PlannedMotion:
+        """The motion the check validates and the worker plays."""
+        if self.motion is None:
+            raise ValueError("the plan has no motion yet (made by plan_prescription)")
+        return self.motion
 
     @property
     def sample_period_s(self) -> float:
@@ -170,6 +182,7 @@ def plan_prescription(
     control_rate_hz: int = DEFAULT_CONTROL_RATE_HZ,
     config: PlanConfig | None = None,
     patient: Mapping[str, Any] | None = None,
+    progress: Progress | None = None,
 ) -> PrescriptionPlan:
     """The plan of a prescription (validated by `core.plan.prescription` if it is not yet a model), before
     the check; refuses with `PrescriptionError`."""
@@ -200,12 +213,18 @@ def plan_prescription(
         )
     setup = None if patient is None else PatientSetup.from_dict(patient)
     if valid.cueing == "optimal":
-        plans = _optimal_segments(plans, twin, period, config, setup)
-    return PrescriptionPlan(tuple(plans), control_rate_hz, config, setup)
+        plans = _optimal_segments(plans, twin, period, config, setup, progress)
+    plan = PrescriptionPlan(tuple(plans), control_rate_hz, config, setup, twin_digest(twin))
+    return replace(plan, motion=PlannedMotion.of(plan, progress))
 
 
 def _optimal_segments(
-    segments: list[SegmentPlan], twin: TwinRobot, period: float, config: PlanConfig, patient: PatientSetup | None
+    segments: list[SegmentPlan],
+    twin: TwinRobot,
+    period: float,
+    config: PlanConfig,
+    patient: PatientSetup | None,
+    progress: Progress | None = None,
 ) -> list[SegmentPlan]:
     """Plan every segment's stance trajectory from its whole cue (as played: × soft-start/fade gains), within
     the limits normal motion keeps, perceived at this patient's head."""
@@ -219,6 +238,8 @@ def _optimal_segments(
         )
         plan = OptimalCueingPlanner(workspace, params).plan(force, angular, period)
         planned.append(replace(segment, planned_poses=plan.pose))
+        if progress is not None:
+            progress(PLANNED_SHARE * len(planned) / len(segments))
     return planned
 
 
@@ -229,11 +250,15 @@ def build_plan(
     control_rate_hz: int = DEFAULT_CONTROL_RATE_HZ,
     config: PlanConfig | None = None,
     patient: Mapping[str, Any] | None = None,
+    progress: Progress | None = None,
 ) -> CheckedPlan:
-    """The one pipeline the worker, the preview and the offline checks use: plan, then check every sample."""
-    plan = plan_prescription(prescription, twin, control_rate_hz=control_rate_hz, config=config, patient=patient)
+    """The one pipeline the worker, the preview and the offline checks use: plan, then check every sample.
+    `progress` hears the fraction done (0 to 1) as segments are planned and checked."""
+    plan = plan_prescription(
+        prescription, twin, control_rate_hz=control_rate_hz, config=config, patient=patient, progress=progress
+    )
     try:
-        return CheckedPlan(plan, check_plan(plan, twin), None)
+        return CheckedPlan(plan, check_plan(plan, twin, progress), None)
     except PrescriptionRejected as rejection:
         return CheckedPlan(plan, None, rejection)
 

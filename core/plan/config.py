@@ -35,6 +35,8 @@ class PlanConfig:
     return_rate_rad_s: float = 0.1  # peak angular rate of a return to neutral
     return_acceleration_m_s2: float = 0.3
     return_angular_acceleration_rad_s2: float = 0.5
+    pause_stop_s: float = 0.5  # a pause: the plan's motion to standstill within this time,
+    pause_hold_s: float = 1.0  # then held still this long, then back to neutral (core.plan.motion.pause)
     # Normal motion (cue, approach, return) must stay this far inside every limit; stop ramps may use the
     # margin (they are checked against the robot's own limits), so braking from a limit hit is possible.
     limit_margin_fraction: float = 0.05

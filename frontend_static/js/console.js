@@ -4,6 +4,7 @@ import { get, post, put, query } from "./api.js";
 import { LiveChart } from "./charts.js";
 import { CLINICAL_EVENTS, OUTCOME_WORDS, clinicClock, describeRobot, detailWords, eventTitle, sessionTime, stopWords, words } from "./language.js";
 import { exportControl } from "./exports.js";
+import { followPlan } from "./plan.js";
 import { metric } from "./pages.js";
 import { M_TO_MM, badge, banner, clear, clearErrors, confirmDialog, engineeringOn, fmt, fmtDateTime, h, showError, table } from "./ui.js";
 
@@ -55,13 +56,16 @@ export async function sessionPage(main, sessionId, cleanup) {
   const prescriptionInfo = await get(`/prescriptions/${booking.prescription_id}`);
   const runState = h("span#run-state.badge.big-state", {}, "—");
   const supervisorState = h("span#supervisor-state", {}, "—");
+  const planState = h("span#plan-state", { role: "status" }, "—");
+  // Disabled until wired and the runs are known: a button that shows enabled must act when clicked.
   const controls = {
-    start: h("button.go#start-button", { type: "button" }, "Start"),
-    pause: h("button.secondary#pause-button", { type: "button" }, "Pause"),
-    resume: h("button.secondary#resume-button", { type: "button" }, "Resume"),
-    stop: h("button.danger#stop-button", { type: "button" }, "Stop"),
-    reset: h("button.secondary#reset-button", { type: "button", title: "Clears a latched emergency stop or fault; never starts motion" }, "Reset robot"),
+    start: h("button.go#start-button", { type: "button", disabled: true }, "Start"),
+    pause: h("button.secondary#pause-button", { type: "button", disabled: true }, "Pause"),
+    resume: h("button.secondary#resume-button", { type: "button", disabled: true }, "Resume"),
+    stop: h("button.danger#stop-button", { type: "button", disabled: true }, "Stop"),
+    reset: h("button.secondary#reset-button", { type: "button", disabled: true, title: "Clears a latched emergency stop or fault; never starts motion" }, "Reset robot"),
   };
+  let controlsWired = false;
   const health = h("div.metrics#health");
   const vizHost = h("div#viz-host");
   const vizStatus = h("p.muted#viz-status", { role: "status" }, "3D view: connecting…");
@@ -84,6 +88,7 @@ export async function sessionPage(main, sessionId, cleanup) {
         h("div.grow", {},
           h("div", {}, h("strong", {}, "Prescription: "), `${prescriptionInfo.name}, version ${booking.prescription_version} (${prescription.content.segments.length} segment(s), ${fmt(totalS, "s", 0)})`),
           h("div", {}, h("strong", {}, "Booked: "), `${fmtDateTime(booking.start)} on ${booking.robot} · `, badge(booking.status)),
+          h("div", {}, h("strong", {}, "Motion plan: "), planState),
           h("div", {}, h("strong", {}, "Robot: "), supervisorState)),
         h("div", {}, h("div.muted", {}, "Run"), runState))),
     h("div.console-grid", {},
@@ -116,6 +121,8 @@ export async function sessionPage(main, sessionId, cleanup) {
   let lastState = null;
   let activeRun = null; // declared with lastState: telemetry frames may arrive before the runs load
   let pendingReview = null; // a stop of this robot's last run that moved the patient, not yet acknowledged
+  // The plan is built and checked ahead (opening this page has it built if it was not): say where it is.
+  cleanup.push(followPlan(sessionId, planState, booking.plan));
   const rateTimer = setInterval(() => { frameRate = framesThisSecond; framesThisSecond = 0; renderHealth(); }, 1000);
 
   function renderHealth() {
@@ -258,6 +265,7 @@ export async function sessionPage(main, sessionId, cleanup) {
   // (export format, open details, notes being typed) survives the refresh every 3 s -------------------------
   const panels = new Map();
   function updateControls() {
+    if (!controlsWired) return; // telemetry may arrive before the listeners are attached
     const robotState = lastState ? lastState.state : null;
     const robotBlocks = robotState !== null && !STARTABLE_ROBOT_STATES.includes(robotState);
     controls.start.disabled = Boolean(activeRun) || robotBlocks || Boolean(pendingReview);
@@ -427,6 +435,8 @@ export async function sessionPage(main, sessionId, cleanup) {
   const onEstop = () => { setTimeout(refreshRuns, 600); setTimeout(refreshRuns, 2500); };
   window.addEventListener("ssp:estop", onEstop);
 
+  controlsWired = true;
+  controls.reset.disabled = false; // the rest follow the runs and the robot's state (updateControls)
   renderHealth();
   await refreshRuns();
   const runsTimer = setInterval(() => refreshRuns().catch(() => null), 3000);

@@ -1,5 +1,5 @@
 // Login, patients, patient profile, prescription editor, schedule week view and session history.
-import { del, get, patch, post, put, query } from "./api.js";
+import { ApiError, del, get, patch, post, put, query } from "./api.js";
 import { protocolByKey } from "./protocols.js";
 import { staticChart } from "./charts.js";
 import { CUEING_WORDS, OUTCOME_WORDS, rejectionWords, words } from "./language.js";
@@ -176,6 +176,10 @@ export async function patientPage(main, patientId) {
     main.append(h("p.muted", {}, `Prieto et al. (1996) measures of the centre of pressure, low-pass filtered at `
       + `${trend.method.filter.cutoff_hz} Hz. Red points: falls and faulted runs. No normative band is drawn: `
       + "none has a verified published source for training on moving platforms."));
+  } else if (runs.length) {
+    const minimum = trend.method.min_window_s;
+    main.append(h("p.muted#balance-not-measured", {}, `No run long enough for sway measures yet: they need at least ${minimum} s `
+      + "of a run in motion with the feet on the plates."));
   } else {
     main.append(h("p.muted", {}, "No run with force-plate data yet: the trend appears after the first session."));
   }
@@ -493,17 +497,32 @@ export async function prescriptionPage(main, prescriptionId, params) {
 }
 
 // Runs the preview; returns the verdict, or null when the prescription itself was refused (shown at its fields).
+// The preview is a job of the robot's planner (issue 21, defect 6): posted, then polled for its progress.
 // A preview asked for while another is computed supersedes it: only the latest is shown (null for the rest).
+const PREVIEW_POLL_MS = 250;
 async function runPreview(form, host, segments, patientId, cueing) {
   const ticket = (host.previewTicket = (host.previewTicket || 0) + 1);
-  clear(host).append(h("p.panel", { role: "status" }, `Computing the preview (${CUEING_WORDS[cueing]}) through the robot's own pipeline…`));
+  const bar = h("progress", { max: 100, value: 0, "aria-label": "Preview computed so far" });
+  const percent = h("span", {}, "0 %");
+  clear(host).append(h("p.panel", { role: "status" },
+    `Computing the preview (${CUEING_WORDS[cueing]}) through the robot's own pipeline… `, bar, " ", percent));
   try {
-    const preview = await post("/prescriptions/preview", { segments, patient_id: patientId, cueing });
+    let job = await post("/prescriptions/previews", { segments, patient_id: patientId, cueing });
+    while (job.state === "planning") {
+      if (host.previewTicket !== ticket) return null;
+      bar.value = Math.round(job.progress * 100);
+      percent.textContent = `${bar.value} %`;
+      await new Promise((resolve) => setTimeout(resolve, PREVIEW_POLL_MS));
+      job = await get(`/prescriptions/previews/${job.preview_id}`);
+    }
     if (host.previewTicket !== ticket) return null;
+    // A refusal found while planning reads as the 422 of the prescription itself: shown at its field.
+    if (job.state === "refused") throw new ApiError(422, job.refusal);
+    if (job.state !== "ready") throw new Error(`the preview could not be computed: ${job.error}`);
     showFieldErrors(form, {});
     clearErrors("form");
-    renderPreview(clear(host), preview);
-    return preview.verdict;
+    renderPreview(clear(host), job.preview);
+    return job.preview.verdict;
   } catch (error) {
     if (host.previewTicket !== ticket) return null;
     clear(host);

@@ -6,6 +6,7 @@
 // Weeks are calendar dates (YYYY-MM-DD), computed in UTC date arithmetic so that no browser zone or DST
 // change can move them; the service answers the previous and next week with each week.
 import { get, patch, post, query, request } from "./api.js";
+import { followPlan, planWords } from "./plan.js";
 import { banner, clear, errorText, field, h, openDialog, showError, showFieldErrors } from "./ui.js";
 
 const go = (hash) => { location.hash = hash; };
@@ -272,12 +273,15 @@ function bookingForm(patients, selectedPatient, zone) {
 
 async function editBooking(booking) {
   const dialog = h("dialog", { "aria-labelledby": "booking-title" });
+  // The robot builds and checks the plan ahead; asking for the booking queues it if it is not yet.
+  const planState = h("span#booking-plan-state", { role: "status" }, "asking the robot…");
   const start = h("input", { type: "datetime-local", value: wallInput(booking.start_local), "data-field": "start" });
   const duration = h("input", { type: "number", min: "1", max: "240", value: String(booking.duration_s / 60), "data-field": "duration_s" });
   const when = `${longDate(wallDate(booking.start_local), { weekday: "short", day: "numeric", month: "short", year: "numeric" })} ${wallTime(booking.start_local)}`;
   const form = h("form", { method: "dialog", novalidate: true },
     h("h2#booking-title", {}, `Session ${booking.id}: ${booking.patient_name}`),
     h("p", {}, `${when} (${booking.timezone}) on ${booking.robot}, ${booking.status}.`),
+    booking.status === "cancelled" ? null : h("p", {}, h("strong", {}, "Motion plan: "), planState),
     field("Move to", start, { unit: booking.timezone }), field("Duration", duration, { unit: "min" }),
     h("div.dialog-buttons", {},
       h("a.button", { href: `#/session/${booking.id}`, onclick: () => dialog.close() }, "Open session console"),
@@ -296,6 +300,11 @@ async function editBooking(booking) {
   }
   dialog.append(form);
   document.body.append(dialog);
-  dialog.addEventListener("close", () => dialog.remove());
+  let stopFollowing = () => {};
+  if (booking.status !== "cancelled") {
+    get(`/sessions/${booking.id}`).then((b) => { if (dialog.open) stopFollowing = followPlan(booking.id, planState, b.plan); })
+      .catch(() => { planState.textContent = planWords(null); });
+  }
+  dialog.addEventListener("close", () => { stopFollowing(); dialog.remove(); });
   openDialog(dialog);
 }

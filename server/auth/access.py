@@ -26,8 +26,8 @@ from server.db import Database, SessionDep
 from server.errors import NotFoundError
 from server.patients.models import CareTeamMember, Patient
 from server.prescriptions.models import Prescription
+from server.robotd.models import SessionRun
 from server.scheduling.models import ScheduledSession
-from server.sessions.models import SessionRun
 from server.users.models import User
 
 ADMIN_ROLE = "admin"
@@ -94,7 +94,8 @@ UNSCOPED_ROUTES: dict[tuple[str, str], str] = {
     ("POST", "/patients"): "any logged-in user; the creator joins the new record's care team",
     ("GET", "/prescriptions"): LIST_IN_CARE,
     ("POST", "/prescriptions"): BODY_PATIENT,
-    ("POST", "/prescriptions/preview"): "the patient named in the body, if any, must be in the caller's care",
+    ("POST", "/prescriptions/previews"): "the patient named in the body, if any, must be in the caller's care",
+    ("GET", "/prescriptions/previews/{preview_id}"): "the user who started the preview job only (others: 404)",
     ("GET", "/sessions"): LIST_IN_CARE,
     ("POST", "/sessions"): BODY_PATIENT,
     ("GET", "/schedule/week"): "every booking's time and robot (free/busy); patient and notes only for the "

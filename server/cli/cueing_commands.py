@@ -5,7 +5,8 @@ Figures (SI in the JSON keys):
 - `feasible`, `reason`: the worker's offline check (`check_plan`); the reason names the first limit, the
   segment, the time and the value, and is null when feasible;
 - `perceived_specific_force_error_rms_m_s2`: RMS over the whole timeline (return ramps included) of the
-  norm over the three axes of otolith(delivered at the head) − otolith(cue);
+  norm over the three axes of otolith(delivered at the head) − otolith(cue as played: soft start, fade out);
+- `perceived_specific_force_error_rms_raw_m_s2`: the same against the cue as written (`raw_cue`);
 - `perceived_angular_velocity_error_rms_rad_s`: the same through the canals;
 - `peak_tilt_rate_rad_s`: the largest roll or pitch rate of the platform that the cue does not ask for;
 - `max_condition_number`: of either robot's Jacobian; `max_stroke_use_fraction`: the largest slider
@@ -125,6 +126,25 @@ def _stroke_use(twin: TwinRobot, poses: np.ndarray) -> np.ndarray:
     return np.max(np.abs(moved) / room, axis=1)
 
 
+def raw_cue(plan: PrescriptionPlan, samples: int) -> np.ndarray:
+    """The prescribed specific force (samples, 3) as written: each segment's cue over its duration, without the
+    soft start, zero after it (fade out and return to neutral), segments end to end as the timeline plays them."""
+    import numpy as np
+
+    from core.cues import cue_from_spec
+    from core.plan.timeline import segment_timelines
+
+    period = plan.sample_period_s
+    force, start = np.zeros((samples, 3)), 0
+    for part in segment_timelines(plan):
+        segment = part.segment
+        written, _ = cue_from_spec(segment.cue_spec, period, segment.seed).generate(segment.cue_samples * period)
+        length = min(round(segment.duration_s / period), len(written))
+        force[start : start + length] = written[:length]
+        start += len(part.poses)
+    return force
+
+
 def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient: dict[str, Any] | None = None) -> dict:
     """Plan (timed), check and judge one prescription with one algorithm; `_series` holds the curves."""
     import numpy as np
@@ -134,7 +154,7 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
     from core.plan.check import PrescriptionRejected, check_plan
     from core.plan.prescription import PrescriptionError
     from core.plan.timeline import prescription_timeline
-    from core.vestibular import PerceptionThresholds
+    from core.vestibular import PerceptionThresholds, VestibularModel
     from server.prescriptions.preview import perceived_at_head
 
     # The body of POST /api/v1/prescriptions: its patient and note do not shape the plan; anything else is
@@ -155,6 +175,8 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
     head_m = head_height_m(patient["height_m"]) if patient else DEFAULT_HEAD_HEIGHT_M
     perceived = perceived_at_head(timeline, period, head_m)
     force_error = perceived["perceived_platform_m_s2"] - perceived["perceived_cue_m_s2"]
+    perceived_raw = VestibularModel(sample_period_s=period).perceive_specific_force(raw_cue(plan, len(force_error)))
+    raw_error = perceived["perceived_platform_m_s2"] - perceived_raw
     rate_error = perceived["perceived_platform_rate_rad_s"] - perceived["perceived_cue_rate_rad_s"]
     uncued = np.abs(perceived["platform_rate_rad_s"][:, :2] - timeline["angular"][:, :2])
     poses = timeline["poses"]
@@ -166,8 +188,9 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
         "reason": reason,
         "duration_s": round(len(poses) * period, 6),
         "planning_wall_s": round(planning_wall_s, 4),
-        "perceived_specific_force_error_rms_m_s2": float(np.sqrt(np.mean(np.sum(force_error**2, axis=1)))),
-        "perceived_angular_velocity_error_rms_rad_s": float(np.sqrt(np.mean(np.sum(rate_error**2, axis=1)))),
+        "perceived_specific_force_error_rms_m_s2": _rms_norm(force_error),
+        "perceived_specific_force_error_rms_raw_m_s2": _rms_norm(raw_error),
+        "perceived_angular_velocity_error_rms_rad_s": _rms_norm(rate_error),
         "peak_tilt_rate_rad_s": float(np.max(uncued)),
         "max_condition_number": float(np.nanmax(_condition_numbers(twin, poses))),
         "min_clearance_mm": float(np.nanmin(clearance) * 1e3),
@@ -176,6 +199,7 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
         "_series": {
             "time_s": np.arange(len(poses)) * period,
             "perceived_cue_m_s2": perceived["perceived_cue_m_s2"],
+            "perceived_cue_raw_m_s2": perceived_raw,
             "perceived_platform_m_s2": perceived["perceived_platform_m_s2"],
             "tilt_rad": poses[:, 3:5],
             "uncued_tilt_rate_rad_s": uncued,
@@ -183,6 +207,13 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
             "stroke_use": stroke_use,
         },
     }
+
+
+def _rms_norm(vectors: np.ndarray) -> float:
+    """RMS over time of the norm over the axes of (N, 3) vectors."""
+    import numpy as np
+
+    return float(np.sqrt(np.mean(np.sum(vectors**2, axis=1))))
 
 
 def _plot_scenario(name: str, results: dict[str, dict[str, Any]], directory: Path) -> list[str]:
@@ -215,6 +246,7 @@ def _plot_scenario(name: str, results: dict[str, dict[str, Any]], directory: Pat
 KEYS = (
     "feasible",
     "perceived_specific_force_error_rms_m_s2",
+    "perceived_specific_force_error_rms_raw_m_s2",
     "perceived_angular_velocity_error_rms_rad_s",
     "peak_tilt_rate_rad_s",
     "max_condition_number",

@@ -15,6 +15,7 @@ from server.cli import (
     falls_commands,
     kinematics_commands,
     layout_commands,
+    posturography_commands,
     realtime_commands,
     service_commands,
     washout_commands,
@@ -40,6 +41,7 @@ COMMAND_MODULES = (
     drives_commands,
     service_commands,
     falls_commands,
+    posturography_commands,
     washout_commands,
     cueing_commands,
 )

@@ -88,8 +88,10 @@ def run(
     from core.plan.check import PrescriptionRejected
     from core.plan.config import DEFAULT_CONTROL_RATE_HZ
     from core.plan.prescription import PrescriptionError
-    from server.realtime.client import CommandRefused, WorkerClient, WorkerError
+    from server.messages import CommandRefused
+    from server.realtime.client import WorkerClient, WorkerError
     from server.realtime.loop import LoopConfigError
+    from server.robotd.playback import plan_and_load
 
     prescription = _read_json(prescription_file, "prescription_file", as_json)
     patient = _read_json(patient_file, "patient_file", as_json)
@@ -101,8 +103,8 @@ def run(
     records, events = [], []
     try:
         client.start()
-        client.load_prescription(prescription, patient)
-        client.start_motion()
+        playback, _ = plan_and_load(client, prescription, patient)
+        playback.start(client)
         with progress_bar("playing", round(seconds * 10), enabled=not as_json) as advance:
             for _ in range(round(seconds * 10)):
                 time.sleep(0.1)
@@ -134,5 +136,86 @@ def run(
     emit(summary, as_json=as_json, human=lambda data: console.print_json(json.dumps(data, default=str)))
 
 
+def plan(
+    prescription_file: Path = typer.Argument(..., help="Prescription JSON: {'segments': [...]}"),
+    cueing: str | None = typer.Option(None, "--cueing", help="classical or optimal (default: the file's)."),
+    patient_file: Path | None = typer.Option(None, "--patient", help="Patient JSON: body_mass_kg, height_m, preset."),
+    control_rate_hz: int | None = typer.Option(None, "--rate", help=RATE_HELP),
+    robot_file: Path | None = ROBOT_OPTION,
+    data_dir: Path | None = typer.Option(None, "--data-dir", help="Store the plan here for the robot daemon."),
+    as_json: bool = typer.Option(False, "--json"),
+) -> None:
+    """Plan and check a prescription as the robot daemon does (every sample it would play), with progress;
+    print its plan id (the key Start finds it by), duration, planning time and check report. With
+    --data-dir the checked plan is stored where that console's robot daemon plays it from."""
+    import resource
+
+    from core.plan.check import PrescriptionRejected
+    from core.plan.config import DEFAULT_CONTROL_RATE_HZ
+    from core.plan.prescription import PrescriptionError
+    from core.robot import twin_digest
+    from server.realtime.loop import LoopConfigError, validate_control_rate
+    from server.realtime.supervisor import SupervisorConfig
+    from server.robotd.plan_store import PlanStore, plan_key
+    from server.robotd.planner import checked_plan
+
+    prescription = _read_json(prescription_file, "prescription_file", as_json)
+    patient = _read_json(patient_file, "patient_file", as_json)
+    if cueing is not None:
+        if cueing not in ("classical", "optimal"):
+            raise fail(f"--cueing = {cueing!r}: must be classical or optimal", as_json=as_json)
+        prescription = {**prescription, "cueing": cueing}
+    config = SupervisorConfig()
+    began_wall, began_cpu = time.perf_counter(), resource.getrusage(resource.RUSAGE_SELF)
+    try:
+        rate_hz = validate_control_rate(DEFAULT_CONTROL_RATE_HZ if control_rate_hz is None else control_rate_hz)
+        twin = twin_from_option(robot_file)
+        with progress_bar("planning and checking", 1000, enabled=not as_json) as advance:
+            done = [0]
+
+            def progress(fraction: float) -> None:
+                step = round(fraction * 1000) - done[0]
+                if step > 0:
+                    done[0] += step
+                    advance(step)
+
+            plan, report = checked_plan(twin, rate_hz, config, prescription, patient, progress)
+        feasible, refusal = True, None
+    except PrescriptionRejected as rejected:
+        feasible, refusal, plan, report = False, rejected.to_dict(), None, {}
+    except (PrescriptionError, LoopConfigError, InvalidValueError) as error:
+        raise fail(str(error), as_json=as_json) from None
+    ended = resource.getrusage(resource.RUSAGE_SELF)
+    key = plan_key(
+        prescription, patient, robot_digest=twin_digest(twin), config=config.to_dict(), control_rate_hz=rate_hz
+    )
+    if plan is not None and data_dir is not None:
+        PlanStore(data_dir.resolve() / "plans").save(key, plan, report)
+    result = {
+        "plan_id": key,
+        "feasible": feasible,
+        "duration_s": report.get("duration_s"),
+        "planning_wall_s": round(time.perf_counter() - began_wall, 3),
+        "planning_cpu_s": round(
+            ended.ru_utime + ended.ru_stime - began_cpu.ru_utime - began_cpu.ru_stime, 3
+        ),  # this process: the check's batch kernels may use both cores
+        "report": report if feasible else None,
+        "rejected": refusal,
+        "stored": str(data_dir.resolve() / "plans" / key) if plan is not None and data_dir is not None else None,
+    }
+
+    def human(data: dict[str, Any]) -> None:
+        _human_report(data["report"] if data["feasible"] else {"rejected": data["rejected"]})
+        console.print(
+            f"plan {data['plan_id']}: planned in {data['planning_wall_s']} s "
+            f"({data['planning_cpu_s']} s of CPU)" + (f"; stored in {data['stored']}" if data["stored"] else "")
+        )
+
+    emit(result, as_json=as_json, human=human)
+    if not feasible:
+        raise typer.Exit(1)
+
+
 def register(app: typer.Typer) -> None:
     app.add_typer(realtime_app, name="realtime")
+    app.command("plan")(plan)

@@ -3,8 +3,11 @@ when none runs) and `ssp-rehab create-user` (clinician accounts)."""
 
 from __future__ import annotations
 
+import datetime as dt
 import logging
 import os
+import signal
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -32,11 +35,9 @@ def _prepare_web_processes(settings: Any, options: dict[str, Any]) -> str:
     (two processes generating it at once would sign with different keys). Returns the factory's import
     string. The robot daemon is not started here: each process attaches, and its lock admits one daemon."""
     import os
-    import uuid
 
     from core.robot import load_twin
     from server.db import create_database_engine, upgrade_database
-    from server.robotd.link import CONSOLE_ID_ENVIRONMENT
 
     for name, value in options.items():
         if value is None:
@@ -46,8 +47,6 @@ def _prepare_web_processes(settings: Any, options: dict[str, Any]) -> str:
         elif isinstance(value, bool):
             value = "true" if value else "false"
         os.environ[f"SSP_REHAB_{name.upper()}"] = str(value)
-    # One console: its processes share the robot's session-control lease (server.robotd.link.console_id).
-    os.environ.setdefault(CONSOLE_ID_ENVIRONMENT, f"serve-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     if settings.robot_file:
         load_twin(settings.robot_file)  # a bad description fails here, once, not in every process
     settings.resolved_secret_key()
@@ -57,6 +56,90 @@ def _prepare_web_processes(settings: Any, options: dict[str, Any]) -> str:
     finally:
         engine.dispose()
     return "server.app:app_from_environment"
+
+
+def _console_identity() -> str:
+    """This `serve`'s console id, in the environment its web processes (and the robot daemon they start)
+    inherit: its processes share the session-control lease (server.robotd.link.console_id), and the
+    daemon names it as its starter, so that this console, and only it, stops it on exit."""
+    import uuid
+
+    from server.robotd.link import CONSOLE_ID_ENVIRONMENT
+
+    return os.environ.setdefault(CONSOLE_ID_ENVIRONMENT, f"serve-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+
+
+def _end_robot(settings: Any, console_identity: str, keep_robot: bool, began: dt.datetime) -> None:
+    """On `serve`'s exit: stop the robot daemon this console started (a controlled stop of a run in
+    motion, records flushed) unless `--keep-robot`; a daemon that ran without it is left alone. Says which."""
+    from server.robotd.link import DAEMON_STOP_TIMEOUT_S, running_daemon, stop_daemon
+    from server.robotd.status import RobotPaths
+
+    paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
+    robot = settings.robot
+    daemon = running_daemon(paths)
+    if daemon is None:
+        return
+    how_to_stop = f"stop it with `kill -TERM {daemon.pid}` (its pid file: {paths.pid})"
+    if daemon.started_by != console_identity:
+        console.print(
+            f"the robot daemon {robot} (pid {daemon.pid}) keeps running: this console did not start it "
+            "(a service, `ssp-rehab robot`, or another console)",
+            soft_wrap=True,
+        )
+        return
+    if keep_robot:
+        console.print(f"left the robot daemon {robot} running (--keep-robot): {how_to_stop}", soft_wrap=True)
+        return
+    console.print(f"stopping the robot daemon {robot} (pid {daemon.pid}) that this console started …", soft_wrap=True)
+    end = stop_daemon(paths, daemon)
+    if not end.ended:
+        error_console.print(
+            f"[bold red]the robot daemon {robot} (pid {daemon.pid}) has not ended within "
+            f"{DAEMON_STOP_TIMEOUT_S:g} s[/]: {how_to_stop}; its log: {paths.log}",
+            soft_wrap=True,
+        )
+        return
+    if not end.clean:
+        error_console.print(
+            f"[bold red]the robot daemon {robot} (pid {daemon.pid}) ended without its own shutdown[/]: the next "
+            f"daemon closes a run it left open as interrupted; its log: {paths.log}",
+            soft_wrap=True,
+        )
+        return
+    runs = _runs_interrupted_by_the_exit(settings, began)
+    what = "".join(f"run {run_id} interrupted with a controlled stop; " for run_id in runs) or "no run in motion; "
+    console.print(f"stopped the robot daemon {robot} that this console started ({what}records flushed)", soft_wrap=True)
+
+
+def _runs_interrupted_by_the_exit(settings: Any, since: dt.datetime) -> list[int]:
+    """The runs of this console's robot that its exit interrupted (its link ended, or its daemon was stopped,
+    with the run in motion: a controlled stop either way), as recorded."""
+    from sqlalchemy import select
+
+    from server.db import Database, create_database_engine
+    from server.robotd.consoles import CONSOLE_LOST
+    from server.robotd.daemon import DAEMON_STOPPED
+    from server.robotd.models import RunOutcome, SessionEvent, SessionRun
+
+    engine = create_database_engine(settings.resolved_database_url())
+    try:
+        with Database(engine).session() as session:
+            rows = session.execute(
+                select(SessionRun.id, SessionEvent.details)
+                .join(SessionEvent, SessionEvent.run_id == SessionRun.id)
+                .where(
+                    SessionRun.robot == settings.robot,
+                    SessionRun.outcome == RunOutcome.INTERRUPTED.value,
+                    SessionRun.ended_at >= since,
+                    SessionEvent.kind == "run_ended",
+                )
+                .order_by(SessionRun.id)
+            ).all()
+    finally:
+        engine.dispose()
+    reasons = (CONSOLE_LOST, DAEMON_STOPPED)
+    return [run_id for run_id, details in rows if str((details or {}).get("reason", "")).startswith(reasons)]
 
 
 def _settings(**overrides: Any) -> Any:
@@ -117,6 +200,11 @@ def register(app: typer.Typer) -> None:
             "--workers",
             help="Web processes behind the one port, all attached to the one robot daemon.",
         ),
+        keep_robot: bool = typer.Option(
+            False,
+            "--keep-robot",
+            help="Leave the robot daemon running on exit (by default a daemon this console started is stopped).",
+        ),
     ) -> None:
         """Run the therapist console: REST API, telemetry WebSocket, web app at / and OpenAPI at /docs."""
         import uvicorn
@@ -143,6 +231,7 @@ def register(app: typer.Typer) -> None:
             "estop_host": None if "SSP_REHAB_ESTOP_HOST" in os.environ else host,
         }
         application: Any  # the app, or the import string of its factory
+        console_identity = _console_identity()
         try:
             settings = _settings(**options)
             # One process runs the app object; several each build it from the environment (a factory).
@@ -162,21 +251,29 @@ def register(app: typer.Typer) -> None:
             f"ssp-rehab console on http://{host}:{port}/  (API docs: /docs)\n"
             f"  data: {settings.data_dir.resolve()}   backend: {settings.backend}   web processes: {workers}"
         )
-        # X-Forwarded-For is believed only from SSP_REHAB_TRUSTED_PROXIES, by the app itself (server.security);
-        # uvicorn's own default would trust it from loopback. log_config=None keeps the structured (JSON)
-        # logging configured above for uvicorn's loggers too.
-        uvicorn.run(
-            application,
-            host=host,
-            port=port,
-            log_level="info",
-            proxy_headers=False,
-            log_config=None,
-            workers=workers,
-            factory=workers > 1,
-            # uvicorn's default (5 s) killed web processes that started on a loaded machine (issue 20).
-            timeout_worker_healthcheck=settings.web_healthcheck_timeout_s,
-        )
+        began = dt.datetime.now(dt.UTC)
+        # uvicorn re-sends the signal that stopped it once it has shut down; SIGTERM's default action would
+        # end this process before the robot daemon is seen to.
+        signal.signal(signal.SIGTERM, lambda signum, _: sys.exit(128 + signum))
+        try:
+            # X-Forwarded-For is believed only from SSP_REHAB_TRUSTED_PROXIES, by the app itself (server.security);
+            # uvicorn's own default would trust it from loopback. log_config=None keeps the structured (JSON)
+            # logging configured above for uvicorn's loggers too.
+            uvicorn.run(
+                application,
+                host=host,
+                port=port,
+                log_level="info",
+                proxy_headers=False,
+                log_config=None,
+                workers=workers,
+                factory=workers > 1,
+                # uvicorn's default (5 s) killed web processes that started on a loaded machine (issue 20).
+                timeout_worker_healthcheck=settings.web_healthcheck_timeout_s,
+            )
+        finally:
+            if settings.start_worker:  # once, here: the web processes (and their links) have all ended
+                _end_robot(settings, console_identity, keep_robot, began)
 
     @app.command("warm-up")
     def warm_up(
@@ -226,6 +323,9 @@ def register(app: typer.Typer) -> None:
             None, "--robot-file", help="Robot description TOML (default: SSP_REHAB_ROBOT_FILE or the paper's robot)."
         ),
         as_json: bool = typer.Option(False, "--json", help="Print the outcome as JSON."),
+        started_by: str | None = typer.Option(
+            None, "--started-by", hidden=True, help="The console (`serve`) that started it, and stops it on exit."
+        ),
     ) -> None:
         """Run the robot daemon: the real-time worker, heartbeat relay, HAL, planning process and recorder
         of one robot. It owns and records every run; `serve` starts it when none runs."""
@@ -242,7 +342,7 @@ def register(app: typer.Typer) -> None:
             raise fail(_validation_message(error), as_json=as_json) from error
         logging.basicConfig(level=logging.INFO, format="%(asctime)s robotd %(levelname)s [%(name)s] %(message)s")
         try:
-            code = run_robot_daemon(settings, settings.robot)
+            code = run_robot_daemon(settings, settings.robot, started_by)
         except AlreadyRunning as error:
             raise fail(str(error), as_json=as_json) from error
         emit(

@@ -17,8 +17,8 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from server.observability.metrics import ServiceMetrics
+from server.robotd.interfaces import RobotLink
 from server.robotd.status import DaemonState
-from server.sessions.worker import RobotLink
 from server.settings import Settings
 
 # A stdlib logger: with the service's logging set up (server.observability.logs) its lines are JSON with the

@@ -1,8 +1,14 @@
-"""`POST /prescriptions/preview`: what a prescription would do, before it is stored or run.
+"""Prescription previews: what a prescription would do, before it is stored or run.
 
-It builds the plan with the worker's own pipeline (`core.plan.build.build_plan`: cue × soft-start/fade gains
-→ washout (paper §4.1) and command shaping, or optimal cueing → quintic return to neutral → twin IK → the
-independent check), then reports, decimated for plotting:
+`POST /prescriptions/previews` starts a preview job and answers at once (202, its id and a Location);
+`GET /prescriptions/previews/{preview_id}` tells how it goes: `planning` with the fraction done, then `ready`
+with the preview, or `refused` with the refusal in the items of a 422's `detail` (so the editor shows it at
+its field), or `failed` if the preview process broke. The job's state is a file under the data directory
+(`server.prescriptions.preview_jobs`): any web process of the console can answer the poll.
+
+The preview builds the plan with the worker's own pipeline (`core.plan.build.build_plan`: cue × soft-start/fade
+gains → washout (paper §4.1) and command shaping, or optimal cueing → quintic return to neutral → twin IK →
+the independent check), then reports, decimated for plotting:
 - the platform motion (stance pose, m and rad);
 - the algorithm (`cueing`: classical washout or optimal cueing, issue 14);
 - the specific force the patient should feel (the cue) and the one the platform gives at the patient's
@@ -11,25 +17,29 @@ independent check), then reports, decimated for plotting:
 - every slider's position against its stroke;
 and the check's verdict: the peak use of every limit, or the first limit it would break.
 
-The work runs in a niced planning process of its own (`PreviewProcess`), never in the web process: a
-preview holds the GIL for seconds in compiled kernels, and it starved the web process's beat to its
-robot daemon, which ended a running session `interrupted` (issue 20, defect 8).
+The work runs in a niced planning process of its own (`PreviewProcess`), never in the web process nor
+inside a request: a preview holds the GIL for seconds in compiled kernels, and it starved the web process's
+beat to its robot daemon, which ended a running session `interrupted` (issue 20, defect 8); a request that
+waited for it held a request thread and showed no progress (issue 21, defect 6).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import functools
+import logging
 import multiprocessing
 import threading
+import time
 from typing import Annotated, Any
 
 import numpy as np
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends, Path, Request, Response, status
 from pydantic import ConfigDict, Field
 
 from core.kinematics import twin_inverse_kinematics
 from core.perception import head_angular_velocity, head_height_m, head_specific_force
-from core.plan.build import build_plan
+from core.plan.build import Progress, build_plan
 from core.plan.config import PlanConfig
 from core.plan.prescription import PrescriptionBody, PrescriptionError
 from core.plan.timeline import prescription_timeline
@@ -39,15 +49,25 @@ from server.api_types import MAX_ID, RequestModel
 from server.auth.access import require_patient
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
-from server.errors import InvalidFieldError
+from server.errors import InvalidFieldError, NotFoundError
+from server.jsonable import to_jsonable
 from server.patients.service import read_patient
+from server.prescriptions.preview_jobs import PreviewJobStore
 from server.prescriptions.schemas import EXAMPLE_SEGMENT
 from server.realtime.scheduling import lower_priority
+from server.security import invalid_field_detail
+
+logger = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/prescriptions", tags=["prescriptions"], dependencies=[Depends(current_user)])
 
 PREVIEW_DURATION_MAX_S = 600.0  # bounds the work (and memory) of one preview at the control rate
 PREVIEW_POINTS = 1200  # per curve: enough for a plot a screen wide
+# Progress: the plan and its check are this far along (all but a second of an optimal plan's minutes; about
+# two thirds of a classical one's second); the plots' curves take the rest, reported step by step.
+PLANNING_SHARE = 0.7
+PROGRESS_WRITE_S = 0.1  # the job's file is rewritten at most this often while it plans
+PREVIEW_ID_PATTERN = r"^[0-9a-f]{32}$"
 
 
 class PreviewRequest(PrescriptionBody, RequestModel):
@@ -72,25 +92,45 @@ def perceived_at_head(timeline: dict[str, np.ndarray], sample_period_s: float, h
     }
 
 
-def prescription_preview(
-    prescription: PrescriptionBody, twin: TwinRobot, *, control_rate_hz: int, patient: dict[str, Any] | None = None
-) -> dict[str, Any]:
-    """The preview of a validated prescription (SI units, time-major lists) and the worker's verdict."""
+def check_preview_duration(prescription: PrescriptionBody) -> None:
+    """Refuses a prescription longer than a preview covers, before any work."""
     total_s = sum(s.duration_s + PlanConfig().fade_out_s for s in prescription.segments)
-    if total_s > PREVIEW_DURATION_MAX_S:  # refused before any work
+    if total_s > PREVIEW_DURATION_MAX_S:
         raise InvalidFieldError(
             "segments", f"{total_s:g} s in all", f"the preview covers at most {PREVIEW_DURATION_MAX_S:g} s"
         )
+
+
+def prescription_preview(
+    prescription: PrescriptionBody,
+    twin: TwinRobot,
+    *,
+    control_rate_hz: int,
+    patient: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> dict[str, Any]:
+    """The preview of a validated prescription (SI units, time-major lists) and the worker's verdict.
+    `progress` hears the fraction done (0 to 1, 1 only when the preview is complete)."""
+    check_preview_duration(prescription)
+    report = progress or (lambda _fraction: None)
     try:
-        checked = build_plan(prescription, twin, control_rate_hz=control_rate_hz, patient=patient)
+        checked = build_plan(
+            prescription,
+            twin,
+            control_rate_hz=control_rate_hz,
+            patient=patient,
+            progress=lambda fraction: report(PLANNING_SHARE * fraction),
+        )
     except PrescriptionError as error:
         raise InvalidFieldError(error.field, error.value, error.limit) from error
     plan = checked.plan
     period = plan.sample_period_s
     timeline = prescription_timeline(plan)
+    report(PLANNING_SHARE + (1.0 - PLANNING_SHARE) / 3)
     poses = timeline["poses"]
     head_m = head_height_m(plan.patient.height_m if plan.patient else None)
     perceived = perceived_at_head(timeline, period, head_m)
+    report(PLANNING_SHARE + 2 * (1.0 - PLANNING_SHARE) / 3)
     rows = np.unique(np.linspace(0, len(poses) - 1, min(PREVIEW_POINTS, len(poses))).round().astype(int))
     # IK is per sample, so solving only the plotted rows gives the same positions for a fraction of the work.
     solutions = twin_inverse_kinematics(twin, poses[rows], check=False)
@@ -110,7 +150,7 @@ def prescription_preview(
             [None if not np.isfinite(v) else round(float(v), 6) for v in column] for column in picked.T
         ]  # fmt: skip
 
-    return {
+    preview = {
         "sample_rate_hz": control_rate_hz,
         "duration_s": round(len(poses) * period, 6),
         "time_s": series(np.arange(len(poses)) * period),
@@ -132,20 +172,50 @@ def prescription_preview(
         "stroke_max_m": np.concatenate([r.stroke_max_m for r in robots]).tolist(),
         "verdict": verdict,
     }
+    report(1.0)
+    return preview
 
 
-def _preview_or_refusal(
-    prescription: PrescriptionBody, twin: TwinRobot, control_rate_hz: int, patient: dict[str, Any] | None
-) -> tuple[str, Any]:
-    """In the preview process: ("ok", preview) or ("invalid", (field, value, limit)), which pickles back."""
+class _ProgressFile:
+    """The preview's progress callback in the preview process: the job's file, at most every
+    `PROGRESS_WRITE_S` (the end is written with the preview)."""
+
+    def __init__(self, jobs: PreviewJobStore, job: dict[str, Any]) -> None:
+        self.jobs, self.job = jobs, job
+        self.written_monotonic = time.monotonic()
+
+    def __call__(self, fraction: float) -> None:
+        progress = round(min(max(fraction, 0.0), 1.0), 4)
+        now = time.monotonic()
+        if self.job["progress"] < progress < 1.0 and now - self.written_monotonic >= PROGRESS_WRITE_S:
+            self.job = {**self.job, "progress": progress}
+            self.jobs.write(self.job)
+            self.written_monotonic = now
+
+
+def run_preview_job(
+    jobs: PreviewJobStore,
+    job: dict[str, Any],
+    prescription: PrescriptionBody,
+    twin: TwinRobot,
+    control_rate_hz: int,
+    patient: dict[str, Any] | None,
+) -> None:
+    """In the preview process: computes the job's preview, writing its progress, then `ready` with the preview
+    or `refused` with the refusal as the items of a 422's `detail`."""
+    report = _ProgressFile(jobs, job)
     try:
-        return "ok", prescription_preview(prescription, twin, control_rate_hz=control_rate_hz, patient=patient)
+        preview = prescription_preview(
+            prescription, twin, control_rate_hz=control_rate_hz, patient=patient, progress=report
+        )
     except InvalidFieldError as error:
-        return "invalid", (error.field, error.value, error.limit)
+        jobs.write({**report.job, "state": "refused", "progress": 1.0, "refusal": invalid_field_detail(error)})
+        return
+    jobs.write({**report.job, "state": "ready", "progress": 1.0, "preview": to_jsonable(preview)})
 
 
 class PreviewProcess:
-    """One niced process per web process that computes previews one at a time (started on first use)."""
+    """One niced process per web process that computes preview jobs one at a time (started on first use)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -162,19 +232,52 @@ class PreviewProcess:
                 )
             return self._pool
 
-    def preview(
-        self, prescription: PrescriptionBody, twin: TwinRobot, *, control_rate_hz: int, patient: dict[str, Any] | None
-    ) -> dict[str, Any]:
-        try:
-            future = self._executor().submit(_preview_or_refusal, prescription, twin, control_rate_hz, patient)
-            status, result = future.result()
-        except concurrent.futures.process.BrokenProcessPool:
-            with self._lock:
+    def _forget(self, pool: concurrent.futures.ProcessPoolExecutor) -> None:
+        with self._lock:
+            if self._pool is pool:
                 self._pool = None  # the next preview starts a new process
+
+    def submit(
+        self,
+        jobs: PreviewJobStore,
+        job: dict[str, Any],
+        prescription: PrescriptionBody,
+        twin: TwinRobot,
+        *,
+        control_rate_hz: int,
+        patient: dict[str, Any] | None,
+    ) -> None:
+        """Queues the job; it ends `failed` if the preview process breaks or the console stops first."""
+        pool = self._executor()
+        try:
+            future = pool.submit(run_preview_job, jobs, job, prescription, twin, control_rate_hz, patient)
+        except concurrent.futures.process.BrokenProcessPool:
+            self._forget(pool)
+            jobs.write({**job, "state": "failed", "error": "the preview process stopped: ask again"})
             raise
-        if status == "invalid":
-            raise InvalidFieldError(*result)
-        return dict(result)
+        future.add_done_callback(functools.partial(self._finished, jobs, job, pool))
+
+    def _finished(
+        self,
+        jobs: PreviewJobStore,
+        job: dict[str, Any],
+        pool: concurrent.futures.ProcessPoolExecutor,
+        future: concurrent.futures.Future[None],
+    ) -> None:
+        if future.cancelled():
+            error = "the console stopped before the preview was computed: ask again"
+        else:
+            failure = future.exception()
+            if failure is None:
+                return  # the preview process wrote the job's end
+            if isinstance(failure, concurrent.futures.process.BrokenProcessPool):
+                self._forget(pool)
+            logger.error("preview %s failed", job["preview_id"], exc_info=failure)
+            error = f"the preview could not be computed ({type(failure).__name__}); the console's log says why"
+        try:
+            jobs.write({**job, "state": "failed", "error": error})
+        except OSError:
+            logger.exception("preview %s: its failure could not be recorded", job["preview_id"])
 
     def close(self) -> None:
         with self._lock:
@@ -183,25 +286,49 @@ class PreviewProcess:
             pool.shutdown(wait=False, cancel_futures=True)
 
 
-@router.post("/preview", responses={422: {"description": "A field is invalid; the answer names it"}})
-def preview_prescription(
-    data: PreviewRequest, request: Request, session: SessionDep, user: CurrentUser
+@router.post(
+    "/previews",
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={422: {"description": "A field is invalid; the answer names it (no job is started)"}},
+)
+def start_preview(
+    data: PreviewRequest, request: Request, response: Response, session: SessionDep, user: CurrentUser
 ) -> dict[str, Any]:
-    """Plots-ready preview of the segments as the robot would play them, and whether the robot accepts them."""
+    """Starts the preview of the segments as the robot would play them: follow it at the Location given."""
     patient = None
     if data.patient_id is not None:
         require_patient(session, user, data.patient_id)
         record = read_patient(session=session, patient_id=data.patient_id, actor_id=user.id)
         patient = {"body_mass_kg": record.body_mass_kg, "height_m": record.height_m}
-    return preview_process(request).preview(
-        data,
-        request.app.state.twin,
-        control_rate_hz=request.app.state.settings.control_rate_hz,
-        patient=patient,
-    )
+    check_preview_duration(data)
+    jobs = preview_jobs(request)
+    job = jobs.create(user.id)
+    settings = request.app.state.settings
+    twin = request.app.state.twin
+    preview_process(request).submit(jobs, job, data, twin, control_rate_hz=settings.control_rate_hz, patient=patient)
+    response.headers["Location"] = request.app.url_path_for("preview_job", preview_id=job["preview_id"])
+    return {"preview_id": job["preview_id"], "state": job["state"], "progress": job["progress"]}
+
+
+@router.get("/previews/{preview_id}", name="preview_job")
+def preview_job(
+    preview_id: Annotated[str, Path(pattern=PREVIEW_ID_PATTERN)], request: Request, user: CurrentUser
+) -> dict[str, Any]:
+    """state (planning | ready | refused | failed), progress 0–1, and the preview, the refusal (the items of
+    a 422's detail) or why it failed; for the user who asked for it only."""
+    job = preview_jobs(request).read(preview_id, user.id)
+    if job is None:
+        raise NotFoundError("preview", preview_id)
+    return job
 
 
 def preview_process(request: Request) -> PreviewProcess:
     """The app's preview process (`create_app` makes it; shut down with the app)."""
     process: PreviewProcess = request.app.state.preview_process
     return process
+
+
+def preview_jobs(request: Request) -> PreviewJobStore:
+    """The app's preview jobs (`create_app` makes the store, under the data directory)."""
+    jobs: PreviewJobStore = request.app.state.preview_jobs
+    return jobs

@@ -21,9 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from core.plan.check import PrescriptionRejected
 from core.plan.config import DEFAULT_CONTROL_RATE_HZ
-from core.plan.prescription import PrescriptionError
+from server import messages as msg
 from server.hal.backends import BACKENDS
 from server.realtime.heartbeat import SERVICE_STALL_TOLERANCE_S, relay_entry
 from server.realtime.loop import validate_control_rate
@@ -44,10 +43,6 @@ log = logging.getLogger("ssp_rehab.realtime")
 
 class WorkerError(RuntimeError):
     """The worker could not be started, died, or did not answer."""
-
-
-class CommandRefused(RuntimeError):  # noqa: N818 — a refusal, not a malfunction
-    """The worker refused a command (wrong state, bad request); the message says why."""
 
 
 class WorkerClient:
@@ -140,7 +135,7 @@ class WorkerClient:
                 self.shutdown(timeout_s=5.0)  # frees the shared memory and the pipes
                 raise WorkerError(failure)
             time.sleep(0.01)
-        self.realtime_setup = self._send("realtime_setup")
+        self.realtime_setup = self._send(msg.RealtimeSetup())
 
     @property
     def worker_pid(self) -> int:
@@ -152,7 +147,7 @@ class WorkerClient:
             return
         if self.process.is_alive():
             with contextlib.suppress(WorkerError):
-                self._send("shutdown", None, expect_reply=False)
+                self._send(msg.Shutdown(), expect_reply=False)
             self.process.join(timeout_s)
             if self.process.is_alive():
                 self.process.terminate()
@@ -181,20 +176,11 @@ class WorkerClient:
 
     # --- commands ---------------------------------------------------------------------------------
 
-    def load_prescription(
-        self, prescription: dict[str, Any], patient: dict[str, Any] | None = None, estop_generation: int | None = None
-    ) -> dict[str, Any]:
-        """Check the prescription offline in the worker and load it; raises `PrescriptionRejected`
-        (segment, time, limit) or `PrescriptionError` (field, value, rule). Returns the check report.
-        `estop_generation` (see `estop_request`): refused if an emergency stop was requested since."""
-        payload = {"prescription": prescription, "patient": patient, "estop_generation": estop_generation}
-        result: dict[str, Any] = self._send("load", payload, timeout_s=300.0)
-        return result
-
     def load_plan(self, plan: Any, report: dict[str, Any], estop_generation: int | None = None) -> dict[str, Any]:
         """Load a plan already made and checked elsewhere (the daemon's planning process)."""
-        payload = {"plan": plan, "report": report, "estop_generation": estop_generation}
-        result: dict[str, Any] = self._send("load_plan", payload, timeout_s=30.0)
+        result: dict[str, Any] = self._send(
+            msg.LoadPlan(plan=plan, report=report, estop_generation=estop_generation), timeout_s=30.0
+        )
         return result
 
     def estop_request(self) -> tuple[int, float | None]:
@@ -204,30 +190,33 @@ class WorkerClient:
 
     def service_lost(self, reason: str) -> None:
         """The console controlling the run is gone: a controlled stop now (the watchdog's reaction, sooner)."""
-        self._send("service_lost", {"reason": reason})
+        self._send(msg.ServiceLost(reason))
 
     def recording_failed(self, details: dict[str, Any]) -> None:
         """The daemon cannot record the run: a controlled stop now, with its reason."""
-        self._send("recording_failed", details)
+        self._send(msg.RecordingFailed(details))
 
     def latch_fault(self, reason: str, details: dict[str, Any]) -> None:
         """Show a stop that happened before this worker (`worker_lost`, `daemon_lost`) as a latched fault."""
-        self._send("latch_fault", {"reason": reason, "details": details})
+        self._send(msg.LatchFault(reason, details))
 
-    def start_motion(self, estop_generation: int | None = None) -> None:
-        self._send("start", {"estop_generation": estop_generation})
+    def start_motion(self, approach: Any, estop_generation: int | None = None) -> None:
+        """Start along the checked approach (`core.plan.check.checked_approach`)."""
+        self._send(msg.StartMotion(approach=approach, estop_generation=estop_generation))
 
-    def pause(self) -> None:
-        self._send("pause")
+    def pause(self, transition: Any) -> None:
+        """Arm the checked pause (`core.plan.check.checked_pause`)."""
+        self._send(msg.PauseMotion(transition))
 
-    def resume(self) -> None:
-        self._send("resume")
+    def resume(self, transition: Any) -> None:
+        """Resume along the checked blend back into the plan (`core.plan.check.checked_resume`)."""
+        self._send(msg.ResumeMotion(transition))
 
     def stop(self) -> None:
-        self._send("stop")
+        self._send(msg.StopMotion())
 
     def reset(self) -> None:
-        self._send("reset")
+        self._send(msg.ResetFaults())
 
     def emergency_stop(self) -> None:
         """Latch an emergency stop: the shared-memory flag first (read every tick), the pipe second."""
@@ -237,7 +226,7 @@ class WorkerClient:
         if self._reply_lock.acquire(blocking=False):
             try:
                 with contextlib.suppress(WorkerError):
-                    self._send_unlocked("estop", None)
+                    self._send_unlocked(msg.EmergencyStop())
             finally:
                 self._reply_lock.release()
 
@@ -258,20 +247,21 @@ class WorkerClient:
 
     # --- plumbing ---------------------------------------------------------------------------------
 
-    def _send(self, name: str, payload: Any = None, *, expect_reply: bool = True, timeout_s: float = 5.0) -> Any:
+    def _send(self, command: msg.WorkerCommand, *, expect_reply: bool = True, timeout_s: float = 5.0) -> Any:
+        name = type(command).__name__
         if self.process is None:
             raise WorkerError(f"{name}: the worker is not started")
         with self._reply_lock:
-            request_id = self._send_unlocked(name, payload)
+            request_id = self._send_unlocked(command)
             if not expect_reply:
                 return None
             return self._await_reply(name, request_id, timeout_s)
 
-    def _send_unlocked(self, name: str, payload: Any) -> int:
-        request_id = next(self._ids)
+    def _send_unlocked(self, command: msg.WorkerCommand) -> int:
+        request_id, name = next(self._ids), type(command).__name__
         try:
             with self._send_lock:
-                self._commands.send((request_id, name, payload))
+                self._commands.send(msg.WorkerRequest(request_id, command))
         except (OSError, EOFError) as error:
             raise WorkerError(f"{name}: the worker is gone ({error})") from error
         return request_id
@@ -283,14 +273,14 @@ class WorkerClient:
             if remaining <= 0 or not self._replies.poll(remaining):
                 raise WorkerError(f"{name}: no reply from the worker within {timeout_s} s")
             try:
-                reply_id, ok, result = self._replies.recv()
+                reply: msg.WorkerReply = self._replies.recv()
             except (OSError, EOFError) as error:
                 raise WorkerError(f"{name}: the worker is gone ({error})") from error
-            if reply_id != request_id:
+            if reply.request_id != request_id:
                 continue  # a late reply to a request that timed out
-            if ok:
-                return result
-            raise _error_from_reply(result)
+            if reply.refusal is not None:
+                raise reply.refusal.error()
+            return reply.result
 
     def _send_heartbeats(self) -> None:
         """Show the relay this process is alive: advance `service_beats` every heartbeat period."""
@@ -301,14 +291,3 @@ class WorkerClient:
         beats = self.control.fields["service_beats"]
         while not self._stop_heartbeat.wait(self.heartbeat_period_s):
             beats += np.uint64(1)
-
-
-def _error_from_reply(result: dict[str, Any]) -> Exception:
-    kind = result.get("type")
-    if kind == "PrescriptionRejected":
-        return PrescriptionRejected(
-            result["segment"], result["time_s"], result["limit"], result["value"], result["message"]
-        )
-    if kind == "PrescriptionError":
-        return PrescriptionError(result["field"], result["value"], result["limit"])
-    return CommandRefused(f"{kind}: {result.get('message', result)}")

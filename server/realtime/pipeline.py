@@ -1,17 +1,20 @@
-"""One control tick of the twin (issue 5 §2), played in the phases the supervisor decides.
+"""One control tick of the twin, played in the phases the supervisor decides.
 
-    cue generator × gain → streaming washout → command shaping → IK of both robots → limits (stroke,
-    rod reach, joint cones, tilt, slider velocity and acceleration, predicted drive force from the
-    inverse dynamics) → HAL write → HAL read → FK monitoring (tracking error) → fall detectors → telemetry
+    checked motion (the plan's sample for this time, or a checked transition's) → IK of both robots →
+    limits (stroke, rod reach, joint cones, tilt, slider velocity and acceleration, predicted drive force
+    from the inverse dynamics) → HAL write → HAL read → FK monitoring (tracking error) → fall detectors →
+    telemetry
 
-Outside the CUE phase the stance pose comes from a bounded-jerk ramp (`ramps`). A limit hit does not
-raise: the command is not sent, the supervisor starts a controlled stop from the last command sent, and
-that stop's first set-point goes out in the same tick. If even a stop ramp would break a limit the
-drives quick-stop (FAULT; ESTOP if it was the emergency stop's ramp). Every exception inside a tick is
-caught and turned into a fault with an event; the loop itself never dies.
+The motion the patient feels is only ever what was checked (`core.plan.motion`): the plan's samples,
+indexed by time (a late tick skips ahead; it never stretches the plan), and the approach, pause and
+resume transitions, each checked before it was sent here. The tick computes motion of its own only for
+the safety reactions: the bounded-jerk ramps (`ramps`) of controlled and emergency stops and the return
+to neutral after a stop, checked here tick by tick against the robot's own limits.
 
-Everything a segment needs (cue generator, washout, shaper, dynamics, fall monitor) is built when the
-prescription is loaded, with the drives off; a tick only resets and steps preallocated objects.
+A limit hit does not raise: the command is not sent, the supervisor starts a controlled stop from the last
+command sent, and that stop's first set-point goes out in the same tick. If even a stop ramp would break a
+limit the drives quick-stop (FAULT; ESTOP if it was the emergency stop's ramp). Every exception inside a
+tick is caught and turned into a fault with an event; the loop itself never dies.
 """
 
 from __future__ import annotations
@@ -23,17 +26,15 @@ from typing import Any
 
 import numpy as np
 
-from core.cues import CueGenerator, cue_from_spec
 from core.dynamics import TwinInverseDynamics
 from core.falls import FallMonitor
 from core.kinematics import ForwardKinematicsError
-from core.plan.build import PrescriptionPlan, SegmentPlan
+from core.plan.build import PrescriptionPlan
 from core.plan.limits import LIMIT_UNITS, LimitCode, SessionLimits
-from core.plan.ramps import PoseRamp, cue_gain, smoothstep5, start_velocity
-from core.robot import TwinRobot
-from core.shaping import CommandShaper
+from core.plan.motion import Transition
+from core.plan.ramps import PoseRamp, start_velocity
+from core.robot import TwinRobot, twin_digest
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
-from core.washout import StreamingWashout
 from server.hal.base import (
     AXIS_COUNT,
     CommandRejectedError,
@@ -44,29 +45,19 @@ from server.hal.base import (
     HardwareInterface,
 )
 from server.realtime.loop import LATE_THRESHOLD_NS
+from server.realtime.motion_source import PlayedPlan
 from server.realtime.supervisor import Phase, Supervisor, SupervisorConfig, TransitionRefused
 from server.realtime.telemetry import HAL_STATE_CODES, TELEMETRY_DTYPE, StopReason, SupervisorState
 
 EventEmitter = Callable[[str, dict[str, Any], "str | None"], None]
-
-
-class _SegmentRuntime:
-    """A segment's streaming objects, built at load time."""
-
-    def __init__(self, plan: SegmentPlan, sample_period_s: float) -> None:
-        self.plan = plan
-        self.cue: CueGenerator = cue_from_spec(plan.cue_spec, sample_period_s, plan.seed)
-        self.washout = StreamingWashout(plan.washout, sample_period_s)
-        self.shaper = CommandShaper(plan.shaping, sample_period_s)
-        self.limits_vector = plan.limits.kernel_vector()
-
-    def restart(self) -> None:
-        self.washout.reset()
-        self.shaper.reset()
+# The platform may stand this far (m, rad per axis) from the pose its approach was checked from: drives
+# that hold still read back within microns; more means it moved (or was moved) since the check.
+APPROACH_START_TOLERANCE = 1e-3
 
 
 class TickPipeline:
-    """The worker's tick: owns the supervisor, the motion state and the telemetry record."""
+    """The worker's tick: owns the supervisor, the motion state, the limits and the telemetry record; the
+    checked motion comes from its motion source (`server.realtime.motion_source`)."""
 
     def __init__(
         self,
@@ -84,8 +75,8 @@ class TickPipeline:
         self.kernels = TwinKernels(twin, self.period_s)
         self.neutral_sliders = self.kernels.neutral_sliders()
         self.default_limits = SessionLimits.for_twin(twin)  # the robot's own: what braking is held to
-        self.plan: PrescriptionPlan | None = None
-        self.segments: list[_SegmentRuntime] = []
+        self.robot_digest = twin_digest(twin)
+        self.source: PlayedPlan | None = None  # the checked motion loaded (None: none)
         self.dynamics = TwinInverseDynamics(twin)
         self.fall_monitor: FallMonitor | None = None
         # The patient's detectors this backend cannot run (it reads no plates); None: all run as configured.
@@ -109,8 +100,6 @@ class TickPipeline:
         self._violation = np.zeros(VIOLATION_FIELDS)
         self._tracking = np.zeros(AXIS_COUNT)
         self._zero3 = np.zeros(3)
-        self._scaled_force = np.zeros(3)
-        self._scaled_angular = np.zeros(3)
         self._predicted_force = np.zeros(AXIS_COUNT)
         self._cue_force, self._cue_angular = view("cue_specific_force_m_s2"), view("cue_angular_velocity_rad_s")
         self.ramp = PoseRamp()
@@ -129,10 +118,8 @@ class TickPipeline:
             plate_cop_m=view("plate_cop_m"),
         )
         self.measured_stance = view("measured_stance_pose")
-        self.segment_index = -1
-        self.segment_tick = 0
-        self.resume_tick: int | None = None
         self.phase_time_s = 0.0
+        self.step_s = self.period_s  # time since the previous set-point: a period, or more after a late tick
         self.tick_index = -1
         self.start_ns = time.perf_counter_ns()
         self.period_ns = round(1e9 / control_rate_hz)
@@ -160,9 +147,23 @@ class TickPipeline:
     # --- commands (from the worker's command channel) ---------------------------------------------
 
     def load(self, plan: PrescriptionPlan) -> None:
-        """Take a checked plan: build every segment's streaming objects now, with the drives off."""
+        """Take a checked plan (drives off). One made for another control rate or robot description is
+        refused: its samples would be played at the wrong times, or on a robot nobody checked them for."""
         self.supervisor.require("load", SupervisorState.IDLE, SupervisorState.READY, SupervisorState.STOPPED)
-        segments = [_SegmentRuntime(segment, self.period_s) for segment in plan.segments]
+        state = self.supervisor.state
+        if plan.control_rate_hz != self.control_rate_hz:
+            raise TransitionRefused(
+                "load",
+                state,
+                f"the plan was made for {plan.control_rate_hz} Hz; this worker runs at {self.control_rate_hz} Hz",
+            )
+        if plan.robot_digest != self.robot_digest:
+            raise TransitionRefused(
+                "load",
+                state,
+                f"the plan was made for robot description {plan.robot_digest or '(none)'}; this robot's is "
+                f"{self.robot_digest}",
+            )
         # The drives carry the patient whatever the backend reads: the payload is in the drive forces.
         payload = plan.patient.payload() if plan.patient else None
         self.dynamics = TwinInverseDynamics(self.twin, payload)
@@ -176,22 +177,37 @@ class TickPipeline:
             self.fall_monitor, self.detectors_off = monitor, None
         if self.hal.simulates_patient:
             self.hal.attach_patient(plan.patient)
-        self.plan, self.segments = plan, segments
+        self.source = PlayedPlan(plan, self.supervisor, self._use_limits)
         self.supervisor.load()
         self._emit(
             "prescription_loaded",
-            {"segments": len(segments), "patient": plan.patient is not None, "control_rate_hz": self.control_rate_hz},
+            {
+                "segments": len(plan.segments),
+                "samples": self.source.motion.samples,
+                "patient": plan.patient is not None,
+                "control_rate_hz": self.control_rate_hz,
+            },
             None,
         )
 
-    def start(self) -> None:
+    def start(self, approach: Transition) -> None:
+        """Start with the checked approach from where the platform stands to neutral, then the plan."""
         self.supervisor.require("start", SupervisorState.READY)
+        state = self.supervisor.state
         if self.hal.state is not HalState.CONFIGURED:
-            raise TransitionRefused("start", self.supervisor.state, f"HAL is {self.hal.state.value}")
-        self.segment_index, self.segment_tick, self.resume_tick = 0, 0, None
-        for segment in self.segments:
-            segment.cue.reset()
-            segment.restart()
+            raise TransitionRefused("start", state, f"HAL is {self.hal.state.value}")
+        if approach.kind != "approach":
+            raise TransitionRefused("start", state, f"a start begins with an approach, not a {approach.kind}")
+        offset = float(np.max(np.abs(self.measured_stance - approach.poses[0])))
+        if offset > APPROACH_START_TOLERANCE:
+            raise TransitionRefused(
+                "start",
+                state,
+                f"the platform stands {offset:.6f} m (or rad) from the pose its approach was checked from "
+                f"(limit {APPROACH_START_TOLERANCE:g}): it moved since; start again",
+            )
+        assert self.source is not None  # READY: a plan is loaded
+        self.source.begin(approach)
         if self.fall_monitor is not None:
             self.fall_monitor.reset()
         self.session_start_ns = time.perf_counter_ns()
@@ -209,13 +225,38 @@ class TickPipeline:
                 None,
             )
 
-    def pause(self) -> None:
-        self.supervisor.pause()
+    def pause(self, transition: Transition) -> None:
+        """Arm a checked pause: the plan plays on to its sample `after_index`, then the pause takes over."""
+        supervisor = self.supervisor
+        supervisor.require("pause", SupervisorState.RUNNING)
+        if transition.kind != "pause":
+            raise TransitionRefused("pause", supervisor.state, f"a {transition.kind} is no pause")
+        source = self.source
+        assert source is not None  # RUNNING: a plan is loaded
+        if source.transition is not None or supervisor.phase is not Phase.CUE:
+            kind = source.transition.kind if source.transition is not None else supervisor.phase.name.lower()
+            raise TransitionRefused("pause", supervisor.state, f"not during the {kind}: wait until it is over, or stop")
+        if transition.after_index <= source.plan_index:
+            raise TransitionRefused(
+                "pause",
+                supervisor.state,
+                f"checked to begin after plan sample {transition.after_index}; sample {source.plan_index} is "
+                "played already",
+            )
+        source.arm_pause(transition)
+        supervisor.pause()
 
-    def resume(self) -> None:
-        self.supervisor.resume()
-        self.resume_tick = self.segment_tick
-        self.segments[self.segment_index].restart()
+    def resume(self, transition: Transition) -> None:
+        """Back into the plan along the checked resume, from neutral, where the pause parked."""
+        supervisor = self.supervisor
+        if transition.kind != "resume":
+            raise TransitionRefused("resume", supervisor.state, f"a {transition.kind} is no resume")
+        parked = supervisor.state is SupervisorState.PAUSED and supervisor.phase is Phase.PARKED
+        if parked and not np.allclose(self.pose, transition.poses[0], atol=1e-9):
+            raise TransitionRefused("resume", supervisor.state, "the resume was checked from another pose")
+        supervisor.resume()
+        assert self.source is not None  # PAUSED: a plan is loaded
+        self.source.play_transition(transition)
 
     def stop(self) -> None:
         self.supervisor.stop()
@@ -233,7 +274,7 @@ class TickPipeline:
             self.hal.reset_estop()
         elif self.hal.state is HalState.FAULT:
             self.hal.reset_fault()
-        self.plan, self.segments = None, []
+        self.source = None
         self.estop_latency_ms = None
         self.session_start_ns = None
 
@@ -305,55 +346,29 @@ class TickPipeline:
 
     def _next_pose(self) -> None:
         """The candidate stance pose of this tick from the current phase (may move to the next phase)."""
-        phase = self.supervisor.phase
-        if phase is Phase.CUE:
-            self._cue_pose()
+        phase, source = self.supervisor.phase, self.source
+        if source is not None and (source.transition is not None or phase is Phase.CUE):
+            self.step_s = (1 + self.skipped_ticks) * self.period_s  # indexed by time: a late tick skips ahead
+            source.advance(1 + self.skipped_ticks, self._candidate)
             return
+        self.step_s = self.period_s
         self.phase_time_s += self.period_s
         finished = self.ramp.evaluate(self.phase_time_s)
         self._candidate[:] = self.ramp.position
-        ramp_over = phase in (Phase.APPROACH, Phase.RETURN, Phase.DECELERATE) and finished
-        hold_over = phase is Phase.HOLD and self.phase_time_s >= self.config.pause_hold_s
-        if ramp_over or hold_over:
-            self._phase_done()
+        if phase in (Phase.RETURN, Phase.DECELERATE) and finished:
+            self.supervisor.phase_finished()
 
-    def _phase_done(self) -> None:
-        if self.supervisor.state is SupervisorState.RUNNING and self.supervisor.phase is Phase.RETURN:
-            self.segment_index += 1  # the return between two segments is over
-            self.segment_tick, self.resume_tick = 0, None
-        self.supervisor.phase_finished()
-
-    def _cue_pose(self) -> None:
-        segment = self.segments[self.segment_index]
-        plan = segment.plan
-        force, angular = segment.cue.step()
-        time_s = self.segment_tick * self.period_s
-        gain = cue_gain(time_s, plan.duration_s, self.config.soft_start_s, self.config.fade_out_s)
-        resume_gain = 1.0
-        if self.resume_tick is not None:
-            resume_gain = smoothstep5((self.segment_tick - self.resume_tick) * self.period_s / self.config.soft_start_s)
-            gain = min(gain, resume_gain)
-        self._cue_force[:] = force
-        self._cue_angular[:] = angular
-        np.multiply(force, gain, out=self._scaled_force)
-        np.multiply(angular, gain, out=self._scaled_angular)
-        if plan.planned_poses is not None:
-            # Optimal cueing plays the checked plan (its gains are in it); after a resume, which starts from
-            # neutral, it is blended in from neutral over the soft start.
-            np.multiply(plan.planned_poses[self.segment_tick], resume_gain, out=self._candidate)
-        else:
-            washed = segment.washout.step(self._scaled_force, self._scaled_angular)
-            self._candidate[:] = segment.shaper.step(washed[:6])
-        self.segment_tick += 1
-        if self.segment_tick >= plan.cue_samples:
-            self.supervisor.segment_finished(last=self.segment_index == len(self.segments) - 1)
+    @property
+    def segment_time_s(self) -> float:
+        """Time into the current segment's samples (its cue, then its return to neutral)."""
+        return self.source.segment_time_s(self.period_s) if self.source is not None else 0.0
 
     def _solve_limits(self) -> None:
         """IK of both robots and every limit on the candidate pose; fills `_violation`."""
         np.subtract(self._candidate, self.pose, out=self._candidate_velocity)
-        self._candidate_velocity /= self.period_s
+        self._candidate_velocity /= self.step_s
         np.subtract(self._candidate_velocity, self.velocity, out=self._candidate_acceleration)
-        self._candidate_acceleration /= self.period_s
+        self._candidate_acceleration /= self.step_s
         self.kernels.command(
             self._candidate,
             self.previous_sliders,
@@ -365,6 +380,7 @@ class TickPipeline:
             self._slider_velocity,
             self._slider_acceleration,
             self._violation,
+            self.step_s,
         )
         if self._violation[0] != 0:
             return
@@ -399,8 +415,8 @@ class TickPipeline:
             "value": float(self._violation[2]),
             "limit_value": float(self._violation[3]),
             "unit": LIMIT_UNITS[code],
-            "segment": self.segment_index,
-            "segment_time_s": round(self.segment_tick * self.period_s, 4),
+            "segment": self.source.segment_index if self.source is not None else -1,
+            "segment_time_s": round(self.segment_time_s, 4),
         }
 
     def _limit_hit(self) -> None:
@@ -430,14 +446,16 @@ class TickPipeline:
         supervisor.phase_changed = False
         phase, state = supervisor.phase, supervisor.state
         self.phase_time_s = 0.0
+        source = self.source
+        if phase in (Phase.DISABLED, Phase.DECELERATE) and source is not None:  # a stop: no checked motion plays on
+            source.abandon()
         if phase is Phase.DISABLED:
             self._drives_off(state)
             return
         if phase is Phase.APPROACH:
             self._activate_drives()
-            self.ramp.to_pose(self.pose, self.velocity, self.acceleration, np.zeros(6), self._return_duration())
-        elif phase is Phase.CUE:
-            self._use_limits(self.segments[self.segment_index].plan.motion_limits)
+        elif source is not None and (phase is Phase.CUE or source.transition is not None):
+            self._use_limits(source.limits())
         elif phase is Phase.RETURN:
             self.ramp.to_pose(self.pose, self._ramp_velocity(), self.acceleration, np.zeros(6), self._return_duration())
         elif phase is Phase.DECELERATE:
@@ -445,7 +463,7 @@ class TickPipeline:
             self._use_limits(self.default_limits)
             duration = config.estop_ramp_s if state is SupervisorState.ESTOP else config.controlled_stop_s
             self.ramp.to_standstill(self.pose, self._ramp_velocity(), self.acceleration, duration)
-        else:  # HOLD, PARKED
+        else:  # PARKED
             self.ramp.hold(self.pose)
 
     def _ramp_velocity(self) -> np.ndarray:
@@ -459,11 +477,14 @@ class TickPipeline:
         self._stroke_min, self._stroke_max = limits.stroke_min_m, limits.stroke_max_m
 
     def _activate_drives(self) -> None:
-        """Drives on; the motion state starts from where the platform actually is (FK of the sliders)."""
+        """Drives on; the motion state starts from where the approach was checked from (where the platform
+        stood, within `APPROACH_START_TOLERANCE`)."""
+        source = self.source
+        assert source is not None and source.transition is not None  # the approach
         self.hal.activate()
         self.hal.read(self.reading)
         self.kernels.measured_stance_pose(self.reading.positions_m[:6], self.measured_stance)
-        self.pose[:] = self.measured_stance
+        self.pose[:] = source.transition.poses[0]
         # The slider-rate limits difference the commanded sliders, so they start from the command of this
         # pose: the left robot's measured sliders differ from it by tracking error (microns, but at 1 kHz a
         # micron of mismatch reads as 1 m/s² of acceleration). The FK monitor watches that error instead.
@@ -471,7 +492,7 @@ class TickPipeline:
         self.previous_slider_velocity[:] = 0.0
         self.velocity[:] = 0.0
         self.acceleration[:] = 0.0
-        self._use_limits(self.plan.segments[0].motion_limits if self.plan else self.default_limits)
+        self._use_limits(source.limits(0))
 
     def _drives_off(self, state: SupervisorState) -> None:
         hal = self.hal
@@ -586,12 +607,18 @@ class TickPipeline:
         record["hal_state"] = HAL_STATE_CODES[self.hal.state]
         record["stop_reason"] = supervisor.stop_reason
         record["estop_latched"] = supervisor.estop_latched
-        if supervisor.phase is not Phase.CUE:
+        playing = supervisor.state in (SupervisorState.RUNNING, SupervisorState.PAUSED)
+        source = self.source
+        cue = source.cue() if playing and source is not None and supervisor.phase is Phase.CUE else None
+        if cue is not None:
+            self._cue_force[:] = cue[:3]
+            self._cue_angular[:] = cue[3:]
+        else:
             self._cue_force.fill(0.0)
             self._cue_angular.fill(0.0)
-        playing = supervisor.state in (SupervisorState.RUNNING, SupervisorState.PAUSED)
-        record["segment"] = self.segment_index if playing else -1
-        record["segment_time_s"] = self.segment_tick * self.period_s
+        record["plan_index"] = source.plan_index if cue is not None and source is not None else -1
+        record["segment"] = source.segment_index if playing and source is not None else -1
+        record["segment_time_s"] = self.segment_time_s
         record["harness_load_n"] = self.reading.harness_load_n
         record["tracking_error_m"] = self.tracking_error_m
         record["fk_iterations"] = self.fk_iterations
@@ -603,12 +630,23 @@ class TickPipeline:
         record["fall_detected"] = self.fall_monitor is not None and self.fall_monitor.fallen
 
 
-# A short session that reaches every compiled kernel of the tick: washout, shaping, IK and limits, dynamics,
-# the simulated patient, FK, and the emergency-stop deceleration.
+# A short session that reaches every compiled kernel of the tick: IK and limits, dynamics, the simulated
+# patient, FK, and the emergency-stop deceleration (the plan's washout and shaping run when it is built).
 _COMPILE_PRESCRIPTION = {
     "segments": [{"cue": {"kind": "sine", "axis": "y", "amplitude_m_s2": 0.3, "frequency_hz": 0.5}, "duration_s": 5.0}]
 }
 _COMPILE_PATIENT = {"body_mass_kg": 70.0, "height_m": 1.70}
+
+
+def start_along_checked_approach(pipeline: TickPipeline) -> None:
+    """Start a pipeline whose plan is loaded along the approach checked here from where its platform stands
+    (one idle tick reads it). For in-process sessions (tests, benchmarks, compiling the tick path): the
+    robot's worker never checks anything in its loop; the daemon sends it the checked approach."""
+    from core.plan.check import checked_approach
+
+    assert pipeline.source is not None, "load a plan first"
+    pipeline.tick(0)
+    pipeline.start(checked_approach(pipeline.source.plan, pipeline.twin, pipeline.measured_stance))
 
 
 def ideal_session(
@@ -618,8 +656,9 @@ def ideal_session(
     prescription: dict[str, Any],
     patient: dict[str, Any],
 ) -> TickPipeline:
-    """A pipeline on an ideal (kinematic) HAL with `prescription` loaded and motion started, ticked by the
-    caller: for compiling the tick path and for timing it."""
+    """A pipeline on an ideal (kinematic) HAL with `prescription` loaded and motion started (its approach
+    checked), ticked by the caller: for compiling the tick path and for timing it. The plan itself is not
+    checked here (this HAL moves nothing); the robot's worker takes only checked plans."""
     from core.plan.build import plan_prescription
     from server.hal.kinematic import KinematicHal
 
@@ -631,7 +670,7 @@ def ideal_session(
         plan_prescription(prescription, twin, control_rate_hz=control_rate_hz, config=config, patient=patient)
     )
     pipeline.heartbeat()
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     return pipeline
 
 

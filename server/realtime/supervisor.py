@@ -1,13 +1,15 @@
 """The safety supervisor: the session state machine and what each state means for the motion.
 
     IDLE --load--> READY --start--> RUNNING --pause--> PAUSED --resume--> RUNNING
-    RUNNING/PAUSED --stop, prescription end, trigger--> STOPPING --at neutral--> STOPPED
+    RUNNING --the plan's last sample--> STOPPED (completed)
+    RUNNING/PAUSED --stop, trigger--> STOPPING --at neutral--> STOPPED
     STOPPED --load--> READY        any --emergency stop--> ESTOP        any --HAL fault--> FAULT
     ESTOP/FAULT/STOPPED --reset--> IDLE (drives stay off: a reset never restarts motion)
 
-Each state is played as motion phases: RUNNING = APPROACH (to neutral, if the platform is not there)
-→ CUE (soft start, cue, fade out) → RETURN (to neutral) per segment; PAUSED = DECELERATE → HOLD →
-RETURN → PARKED; STOPPING = DECELERATE → RETURN; ESTOP = DECELERATE (bounded-jerk ramp to standstill
+Each state is played as motion phases: RUNNING = APPROACH (the checked approach to neutral) → CUE (the
+checked plan: every segment's cue and return to neutral; after a resume, the checked blend back into it);
+PAUSED = CUE (until the checked pause's first sample) → RETURN (the checked pause: standstill, hold,
+neutral) → PARKED; STOPPING = DECELERATE → RETURN; ESTOP = DECELERATE (bounded-jerk ramp to standstill
 within `estop_ramp_s`) → DISABLED (HAL quick stop and drives off, IEC 60204-1 category 1), latched.
 Controlled-stop triggers (watchdog, late ticks, limit hit, fall, tracking error, service lost) move
 RUNNING/PAUSED to STOPPING and say why in `stop_reason`.
@@ -35,8 +37,10 @@ class Phase(enum.IntEnum):
     CUE = 2
     RETURN = 3  # bounded-jerk move to neutral
     DECELERATE = 4  # bounded-jerk ramp to standstill
-    HOLD = 5  # stand still where we are, for `pause_hold_s`
     PARKED = 6  # stand still at neutral until told otherwise
+
+
+STOP_RAMP_RUNNING = "the stop ramp is still running"  # a reset's refusal while the robot still brakes
 
 
 class TransitionRefused(RuntimeError):  # noqa: N818 — a refusal, not a malfunction
@@ -58,8 +62,7 @@ class SupervisorConfig(PlanConfig):
     plan is built and played with the same numbers."""
 
     estop_ramp_s: float = 0.3  # emergency stop: standstill within this time, then drives off
-    controlled_stop_s: float = 0.5  # controlled stops and pause: standstill within this time
-    pause_hold_s: float = 1.0  # pause holds still this long before washing out to neutral
+    controlled_stop_s: float = 0.5  # controlled stops: standstill within this time
     watchdog_s: float = 0.1  # no heartbeat for this long → controlled stop
     late_ticks_to_stop: int = 10  # this many late ticks in a row → controlled stop
     tracking_error_max_m: float = 0.01  # slider command vs measured position
@@ -118,8 +121,14 @@ class Supervisor:
         self._enter(SupervisorState.RUNNING, Phase.APPROACH)
 
     def pause(self) -> None:
+        """Paused: the plan plays on to the sample where its checked pause begins (`pause_begins`)."""
         self.require("pause", SupervisorState.RUNNING)
-        self._enter(SupervisorState.PAUSED, Phase.DECELERATE)
+        self._enter(SupervisorState.PAUSED, Phase.CUE)
+
+    def pause_begins(self) -> None:
+        """The checked pause has taken over from the plan: to standstill, hold, back to neutral."""
+        if self.state is SupervisorState.PAUSED:
+            self._set_phase(Phase.RETURN)
 
     def resume(self) -> None:
         self.require("resume", SupervisorState.PAUSED)
@@ -147,7 +156,7 @@ class Supervisor:
         """Clear a latched emergency stop or fault, or leave STOPPED; always to IDLE with drives off."""
         self.require("reset", SupervisorState.ESTOP, SupervisorState.FAULT, SupervisorState.STOPPED)
         if self.phase is not Phase.DISABLED:
-            raise TransitionRefused("reset", self.state, "the stop ramp is still running")
+            raise TransitionRefused("reset", self.state, STOP_RAMP_RUNNING)
         self.estop_latched = False
         self.has_prescription = False
         self._enter(SupervisorState.IDLE, Phase.DISABLED)
@@ -201,11 +210,9 @@ class Supervisor:
         state, phase = self.state, self.phase
         if state is SupervisorState.RUNNING and phase in (Phase.APPROACH, Phase.RETURN):
             self._set_phase(Phase.CUE)  # the first segment, or the next one
-        elif state is SupervisorState.PAUSED and phase is not Phase.PARKED:
-            following = {Phase.DECELERATE: Phase.HOLD, Phase.HOLD: Phase.RETURN, Phase.RETURN: Phase.PARKED}
-            if phase is Phase.RETURN:
-                self._emit("paused_at_neutral", {})
-            self._set_phase(following[phase])
+        elif state is SupervisorState.PAUSED and phase is Phase.RETURN:
+            self._emit("paused_at_neutral", {})
+            self._set_phase(Phase.PARKED)
         elif state is SupervisorState.STOPPING:
             if phase is Phase.DECELERATE:
                 self._set_phase(Phase.RETURN)
@@ -215,14 +222,13 @@ class Supervisor:
             self._emit("standstill", {"reason": "emergency_stop"})
             self._set_phase(Phase.DISABLED)
 
-    def segment_finished(self, last: bool) -> None:
-        """A segment's cue (with its fade-out) is over: return to neutral, then the next or stop."""
-        if last:
-            self.stop_reason = StopReason.COMPLETED
-            self._emit("prescription_completed", {})
-            self._enter(SupervisorState.STOPPING, Phase.RETURN)
-        else:
-            self._set_phase(Phase.RETURN)
+    def plan_finished(self) -> None:
+        """The plan's last sample (neutral, at rest, after the last segment's return) is out: drives off."""
+        if self.state is not SupervisorState.RUNNING:
+            return
+        self.stop_reason = StopReason.COMPLETED
+        self._emit("prescription_completed", {})
+        self._enter(SupervisorState.STOPPED, Phase.DISABLED)
 
     # --- internals --------------------------------------------------------------------------------
 

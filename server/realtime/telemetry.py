@@ -78,6 +78,7 @@ TELEMETRY_DTYPE = np.dtype(
         ("lateness_us", np.float32),
         ("deadline_misses", np.uint32),  # cumulative late ticks
         ("limit_hits", np.uint32),  # cumulative
+        ("plan_index", np.int32),  # the checked plan's sample played in this tick; -1 off the plan (transitions)
         ("segment", np.int16),  # prescription segment being played, -1 for none
         ("fk_iterations", np.int16),
         ("late_streak", np.uint16),  # consecutive late ticks

@@ -6,10 +6,9 @@ per tick; the pipe closing means the service is gone) â†’ `TickPipeline.tick` â†
 telemetry ring and behind the seqlock. Replies go back on their own pipe; events go into their own
 shared-memory ring at once.
 
-In the robot daemon a prescription is planned and checked by the daemon's planning process, and the
-worker only takes the finished plan (`load_plan`), so the loop keeps running, and an emergency stop is
-latched, during a long check. `load` (plan and check here, with the drives off) remains for direct use
-of `WorkerClient`.
+The worker plans and checks nothing: it takes a checked plan (`load_plan`) and the checked transitions
+(the approach with `start`, `pause`, `resume`), made by the robot daemon and its planning process, so the
+loop keeps running, and an emergency stop is latched, during a long check.
 The worker exits on `shutdown` or when the service is gone, but only once the drives are off.
 """
 
@@ -24,10 +23,9 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any
 
-from core.plan.build import PrescriptionPlan, build_plan
-from core.plan.check import PrescriptionRejected
-from core.plan.prescription import PrescriptionError
+from core.plan.build import PrescriptionPlan
 from core.robot import default_twin, load_twin
+from server import messages as msg
 from server.hal.backends import make_hal
 from server.realtime.loop import FixedRateLoop, configure_realtime, freeze_garbage_collector
 from server.realtime.pipeline import TickPipeline, compile_tick_path
@@ -97,11 +95,11 @@ class Worker:
         encode_event(slot, kind, details, detector)
         self.events.publish()
 
-    def _reply(self, request_id: int, ok: bool, result: Any) -> None:
+    def _reply(self, reply: msg.WorkerReply) -> None:
         if self.service_gone:
             return
         try:
-            self.replies.send((request_id, ok, result))
+            self.replies.send(reply)
         except (OSError, EOFError):
             self._lose_service()
 
@@ -112,11 +110,11 @@ class Worker:
             try:
                 if not self.commands.poll(0):
                     return
-                message = self.commands.recv()
+                request: msg.WorkerRequest = self.commands.recv()
             except (EOFError, OSError):
                 self._lose_service()
                 return
-            self._handle(*message)
+            self._handle(request)
 
     def _lose_service(self) -> None:
         if not self.service_gone:
@@ -124,48 +122,48 @@ class Worker:
             self.emit("service_lost", {})
             self.pipeline.service_lost()
 
-    def _handle(self, request_id: int, name: str, payload: Any) -> None:
-        pipeline = self.pipeline
-        if name == "estop":
-            pipeline.emergency_stop(payload)
+    def _handle(self, request: msg.WorkerRequest) -> None:
+        command, pipeline = request.command, self.pipeline
+        if isinstance(command, msg.EmergencyStop):
+            pipeline.emergency_stop(None)
             return
         try:
-            result: Any = None
-            if name in ("load", "load_plan", "start"):
-                self._refuse_after_estop(name, (payload or {}).get("estop_generation"))
-            if name == "load":
-                result = self._load(payload["prescription"], payload.get("patient"))
-            elif name == "load_plan":
-                result = self._load_plan(payload["plan"], payload["report"])
-            elif name == "realtime_setup":
-                result = self.realtime
-            elif name == "service_lost":  # the daemon lost the console that controls the run
-                self.emit("service_lost", payload or {})
+            self._reply(msg.WorkerReply(request.request_id, self._obey(command)))
+        except Exception as error:  # a bad command is refused; it never takes the loop down
+            self._reply(msg.WorkerReply(request.request_id, refusal=msg.refusal_of(error)))
+
+    def _obey(self, command: msg.WorkerCommand) -> Any:
+        pipeline = self.pipeline
+        match command:
+            case msg.LoadPlan(plan=plan, report=report, estop_generation=generation):
+                self._refuse_after_estop("load_plan", generation)
+                return self._load_plan(plan, report)
+            case msg.StartMotion(approach=approach, estop_generation=generation):
+                self._refuse_after_estop("start", generation)
+                pipeline.start(approach)
+            case msg.PauseMotion(transition=transition):
+                pipeline.pause(transition)
+            case msg.ResumeMotion(transition=transition):
+                pipeline.resume(transition)
+            case msg.StopMotion():
+                pipeline.stop()
+            case msg.ResetFaults():
+                pipeline.reset()
+            case msg.RealtimeSetup():
+                return self.realtime
+            case msg.ServiceLost(reason=reason):  # the daemon lost the console that controls the run
+                self.emit("service_lost", {"reason": reason})
                 pipeline.service_lost()
-            elif name == "recording_failed":  # the daemon cannot write the run's journal
-                pipeline.recording_failed(payload or {})
-            elif name == "latch_fault":  # a fresh worker after a lost worker or daemon
-                pipeline.latch_fault(StopReason[str(payload["reason"]).upper()], payload.get("details") or {})
-            elif name in ("start", "pause", "resume", "stop", "reset"):
-                getattr(pipeline, name)()
-            elif name == "shutdown":
+            case msg.RecordingFailed(details=details):  # the daemon cannot write the run's journal
+                pipeline.recording_failed(details)
+            case msg.LatchFault(reason=reason, details=details):  # a fresh worker after a lost worker or daemon
+                pipeline.latch_fault(StopReason[reason.upper()], details)
+            case msg.Shutdown():
                 self.shutdown_requested = True
                 pipeline.supervisor.controlled_stop(StopReason.OPERATOR, {})
-            else:
-                raise ValueError(f"command = {name!r}: unknown")
-            self._reply(request_id, True, result)
-        except PrescriptionRejected as rejected:
-            self._reply(request_id, False, {"type": "PrescriptionRejected", **rejected.to_dict()})
-        except PrescriptionError as error:
-            self._reply(
-                request_id,
-                False,
-                {"type": "PrescriptionError", "field": error.field, "value": repr(error.value), "limit": error.limit},
-            )
-        except TransitionRefused as refused:
-            self._reply(request_id, False, {"type": "TransitionRefused", "message": str(refused)})
-        except Exception as error:  # a bad command must never take the loop down
-            self._reply(request_id, False, {"type": type(error).__name__, "message": str(error)})
+            case _:
+                raise ValueError(f"command = {command!r}: unknown")
+        return None
 
     def _refuse_after_estop(self, command: str, estop_generation: int | None) -> None:
         """A load or start asked for before the latest emergency-stop request is refused, even after a reset:
@@ -181,31 +179,16 @@ class Worker:
                 f"for after request {int(estop_generation)})",
             )
 
-    def _load_plan(self, plan: PrescriptionPlan, report: dict[str, Any]) -> dict[str, Any]:
+    def _load_plan(self, plan: PrescriptionPlan, report: dict[str, Any] | None) -> dict[str, Any]:
         """Take a plan the daemon's planning process made and checked: the loop never stops for it."""
+        if not report:
+            raise TransitionRefused("load", self.pipeline.supervisor.state, "the plan comes without its check report")
         try:
             self.pipeline.load(plan)
         finally:
             self.loop.rebase()  # building the segments' streaming objects may take a few periods
         self.emit("prescription_checked", report)
         return report
-
-    def _load(self, prescription: dict[str, Any], patient: dict[str, Any] | None) -> dict[str, Any]:
-        self.pipeline.supervisor.require("load", *LOAD_STATES)
-        try:
-            checked = build_plan(
-                prescription,
-                self.twin,
-                control_rate_hz=self.config.control_rate_hz,
-                config=self.supervisor_config,
-                patient=patient,
-            )
-            report = checked.accepted()
-            self.pipeline.load(checked.plan)
-        finally:
-            self.loop.rebase()  # planning and the check took many periods; the drives are off, nothing was late
-        self.emit("prescription_checked", report.to_dict())
-        return report.to_dict()
 
     # --- the loop ---------------------------------------------------------------------------------
 

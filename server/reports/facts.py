@@ -20,15 +20,44 @@ from server.patients.models import Patient
 from server.prescriptions.models import Prescription, PrescriptionVersion
 from server.reviews.schemas import RunReviewOut
 from server.reviews.service import review_of
+from server.robotd.models import SessionEvent, SessionRun
+from server.robotd.runs import get_run
 from server.scheduling.models import ScheduledSession
 from server.sessions.balance import run_balance
 from server.sessions.logs import telemetry_columns
-from server.sessions.models import SessionEvent, SessionRun
-from server.sessions.service import get_run
 from server.users.models import User
 
 AXES = ("x", "y", "z")
 MIN_SAMPLES_FOR_QUALITY = 16
+# The delivered motion's smoothing: a cubic Savitzky–Golay fit over this window. It passes the cues (a few Hz
+# at most) and takes out what a sample's time stamp jitter (tenths of a millisecond) adds to a derivative.
+DELIVERED_WINDOW_S = 0.101
+DELIVERED_POLYORDER = 3
+
+
+def delivered_motion(columns: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """What the platform delivered (issue 22 §6): the measured stance pose (forward kinematics of the measured
+    sliders), resampled onto a uniform grid at the median sample interval by its time stamps, then fitted by
+    a cubic Savitzky–Golay filter over `DELIVERED_WINDOW_S`, whose fit gives the pose, its velocity and its
+    acceleration at once; back at the samples' times, each (6, N). None when the run is too short for the
+    window. Before, the commanded pose was differentiated twice by finite differences over the stamps, and
+    stamp jitter read as ±100 m/s² against a 0.5 m/s² cue."""
+    from scipy.signal import savgol_filter
+
+    time_s = np.asarray(columns["time_s"], dtype=float)
+    measured = np.asarray(columns["measured_stance_pose"], dtype=float)
+    period_s = float(np.median(np.diff(time_s)))
+    grid = time_s[0] + period_s * np.arange(round((time_s[-1] - time_s[0]) / period_s) + 1)
+    window = max(DELIVERED_POLYORDER + 2, round(DELIVERED_WINDOW_S / period_s)) | 1  # odd
+    if len(grid) < window:
+        return None
+    on_grid = np.column_stack([np.interp(grid, time_s, measured[:, axis]) for axis in range(measured.shape[1])])
+    fitted = [
+        savgol_filter(on_grid, window, DELIVERED_POLYORDER, deriv=deriv, delta=period_s, axis=0) for deriv in (0, 1, 2)
+    ]
+    return tuple(  # type: ignore[return-value]
+        np.array([np.interp(time_s, grid, values[:, axis]) for axis in range(values.shape[1])]) for values in fitted
+    )
 
 
 @dataclass
@@ -79,9 +108,10 @@ def cue_quality(columns: dict[str, np.ndarray]) -> dict[str, Any] | None:
     if len(time_s) < MIN_SAMPLES_FOR_QUALITY or np.any(np.diff(time_s) <= 0):
         return None
     period_s = float(np.median(np.diff(time_s)))
-    pose = np.asarray(columns["stance_pose"], dtype=float).T
-    velocity = np.gradient(pose, time_s, axis=-1)
-    acceleration = np.gradient(velocity, time_s, axis=-1)
+    motion = delivered_motion(columns)
+    if motion is None:
+        return None
+    pose, velocity, acceleration = motion
     cue_force = np.asarray(columns["cue_specific_force_m_s2"], dtype=float).T
     cue_rate = np.asarray(columns["cue_angular_velocity_rad_s"], dtype=float).T
     metrics = fidelity_of_signals(

@@ -23,6 +23,7 @@ from reportlab.lib.units import cm
 from reportlab.platypus import Image, Paragraph, SimpleDocTemplate, Spacer, Table, TableStyle
 
 from server.reports.facts import ProgressRow, RunFacts
+from server.sessions.balance import MIN_WINDOW_S
 
 STYLES = getSampleStyleSheet()
 OUTCOME_WORDS = {
@@ -55,6 +56,8 @@ SWAY_ROWS = (
     ("path_length_m", "Path length", "mm", 1000.0, 0),
     ("ellipse_area_95_m2", "95 % ellipse area", "cm²", 1e4, 2),
     ("duration_s", "Duration analysed", "s", 1.0, 1),
+    ("window_from_s", "Window analysed, from (into the run)", "s", 1.0, 1),
+    ("window_to_s", "Window analysed, to (into the run)", "s", 1.0, 1),
 )
 
 
@@ -207,7 +210,12 @@ def run_report_pdf(facts: RunFacts) -> bytes:
             )
         )
     else:
-        story.append(_p("No force-plate data with the feet loaded was recorded in this run."))
+        story.append(
+            _p(
+                f"Not measured: the sway measures need at least {MIN_WINDOW_S:g} s of the run in motion with the feet "
+                "on the plates, and this run had less."
+            )
+        )
     story.append(_p("Cue quality (perceived through the otolith model, paper §4.2)", "Heading2"))
     quality = facts.cue_quality
     if quality:

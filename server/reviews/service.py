@@ -14,9 +14,9 @@ from server.db import writes
 from server.errors import ConflictError
 from server.reviews.models import RunNote
 from server.reviews.schemas import AcknowledgementOut, RunNotesIn, RunNotesOut, RunReviewOut
+from server.robotd.models import RunOutcome, RunState, SessionEvent, SessionRun
+from server.robotd.runs import add_event, get_run
 from server.scheduling.service import get_booking
-from server.sessions.models import RunOutcome, RunState, SessionEvent, SessionRun
-from server.sessions.service import add_event, get_run
 
 # Each outcome that needs an acknowledgement, in the words of the refusal.
 STOPS_NEEDING_ACKNOWLEDGEMENT = {

@@ -4,100 +4,62 @@ It owns the run. A start is checked (booking, robot, busy), planned in the plann
 into the worker and started, and only then recorded, with the run id the daemon chose; a refused start
 never touches the running run. Pause, resume, stop, the emergency stop, completion, faults, falls and
 the loss of the controlling console or of the worker are decided here and end the run through the one
-`end_run`. The recorder thread drains the worker's telemetry and event rings every 20 ms into the run's
-append-only journal and hands them to the database writer (server.robotd.writer).
+`end_run`. The recorder thread drains the worker's telemetry and event rings every 20 ms and hands them
+to the recorder (server.robotd.recorder: the run's journal, then the database); the console links and
+the session-control lease are the link watch's (server.robotd.consoles).
 
 A journal write that fails (disk full, I/O error) is a stop: the run ends with a controlled stop and a
-`recording_failed` event, everything it produced stays in memory until the database takes it, and the
-journal goes only once the database holds at least what it holds. Starts are refused until a probe
-write succeeds again; `recording_failure` says why meanwhile (the daemon's status, hence /health).
+`recording_failed` event, everything it produced stays in memory until the database takes it. Starts are
+refused until a probe write succeeds again; `recorder.failure` says why meanwhile (the daemon's status,
+hence /health).
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import errno
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from prometheus_client import generate_latest
-from sqlalchemy import func, select
-from sqlalchemy.orm import Session
 
-from server.db import Database, write_transaction
-from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
-from server.jsonable import to_jsonable
+from server.db import Database
+from server.errors import ConflictError, WorkerUnavailableError
 from server.observability.metrics import RobotMetrics, WorkerTap
-from server.realtime.telemetry import TELEMETRY_DTYPE
-from server.robotd.journal import RunJournal, journal_counts
-from server.robotd.planner import Planner
-from server.robotd.writer import DatabaseWriter
-from server.sessions import service
-from server.sessions.models import RunOutcome, RunState, SessionEvent, SessionRun, TelemetryChunk
-from server.sessions.recorder import encode_chunk, event_utc, terminal_outcome_of
+from server.realtime.supervisor import STOP_RAMP_RUNNING
+from server.robotd import runs
+from server.robotd.consoles import WEB_STALL_TOLERANCE_S, ConsoleLinks
+from server.robotd.models import RunOutcome, RunState
+from server.robotd.plan_store import PlanStore
+from server.robotd.planner import InlinePlanner, Planner
+from server.robotd.plans import PlanPreparer
+from server.robotd.playback import Playback
+from server.robotd.recorder import CHUNK_PERIOD_S, ActiveRun, RunRecorder
+from server.robotd.records import event_utc, terminal_outcome_of
 
 if TYPE_CHECKING:
-    from server.sessions.worker import WorkerControl
+    from core.robot import TwinRobot
+    from server.robotd.interfaces import WorkerControl
 
 log = logging.getLogger("ssp_rehab.robotd")
 
 RECORD_PERIOD_S = 0.02  # journal writes at least every 20 ms (the issue asks for 100 ms)
-CHUNK_PERIOD_S = 1.0  # telemetry reaches the database in chunks of about a second
 TAIL_S = 10.0  # telemetry after a run ends still belongs to it: the stop that follows, at most this long
 TAIL_AFTER_DRIVES_OFF_S = 0.3  # and this long once the drives are off
 SHUTDOWN_WAIT_S = 5.0  # for the controlled stop of a run in motion when the daemon is shut down
-WEB_STALL_TOLERANCE_S = 1.0  # a controlling console silent this long is treated as gone
-RECORDING_PROBE_PERIOD_S = 1.0  # while the recorder cannot write, try a probe write this often
-RECORDING_PROBE_BYTES = TELEMETRY_DTYPE.itemsize * 1000  # a second of telemetry at 1 kHz must fit
 DAEMON_DETECTOR = "robot daemon"
+RESET_WAIT_S = 3.0  # longer than any emergency-stop ramp (at most 2 s, server.realtime.supervisor)
+RESET_RETRY_S = 0.02
 VERIFIED_LOGIN = "login session"  # the credential of a command whose login the database confirmed
+# Why a run ended interrupted when the daemon was stopped with its run still in motion (then "... (SIGTERM)").
+DAEMON_STOPPED = "the robot daemon was stopped"
 Listener = Callable[[list[dict[str, Any]]], None]
-
-
-@dataclass
-class ActiveRun:
-    run_id: int
-    session_id: int
-    controller: str | None  # the link of the console that started it (None: in-process)
-    journal: RunJournal | None
-    state: RunState = RunState.RUNNING
-    pending: list[np.ndarray] = field(default_factory=list)
-    sequence: int = 0
-    last_chunk_s: float = field(default_factory=time.monotonic)
-    outcome: RunOutcome | None = None
-    tail_deadline: float | None = None
-    journal_failed: bool = False  # a write failed: the rest of the run is held in memory for the database
-    # The run as the daemon knows it: what stop and pause answer with, never waiting for the database.
-    version_id: int | None = None
-    started_by_id: int | None = None
-    started_at: dt.datetime = field(default_factory=lambda: dt.datetime.now(dt.UTC))
-    ended_at: dt.datetime | None = None
-    stopped_by_id: int | None = None
-    sample_count: int = 0
-
-    def record(self, robot: str) -> dict[str, Any]:
-        """The run as the daemon knows it, in the shape of `SessionRunOut`."""
-        return {
-            "id": self.run_id,
-            "scheduled_session_id": self.session_id,
-            "prescription_version_id": self.version_id,
-            "robot": robot,
-            "state": self.state.value,
-            "outcome": self.outcome.value if self.outcome is not None else None,
-            "started_at": self.started_at.isoformat(),
-            "ended_at": self.ended_at.isoformat() if self.ended_at is not None else None,
-            "started_by_id": self.started_by_id,
-            "stopped_by_id": self.stopped_by_id,
-            "sample_count": self.sample_count,
-        }
 
 
 @dataclass
@@ -111,16 +73,6 @@ class PendingStart:
     stopped_by: int | None = None  # who stopped it while it was being recorded
 
 
-@dataclass
-class LinkState:
-    """One attached console: alive while its link is open and it beats."""
-
-    pid: int | None = None  # the console's process, to name it in a refusal
-    console: str | None = None  # the console it serves: the web processes of one `serve` share one
-    last_beat_s: float = field(default_factory=time.monotonic)
-    open: bool = True
-
-
 class RobotDaemon:
     def __init__(
         self,
@@ -129,7 +81,9 @@ class RobotDaemon:
         worker: WorkerControl,
         database: Database,
         journal_dir: Path | None,
-        planner: Planner | None = None,
+        planner: Planner | InlinePlanner,
+        twin: TwinRobot,
+        plan_store: PlanStore,
         chunk_period_s: float = CHUNK_PERIOD_S,
         tail_s: float = TAIL_S,
         web_stall_tolerance_s: float = WEB_STALL_TOLERANCE_S,
@@ -140,23 +94,22 @@ class RobotDaemon:
         # Counted where the worker's streams are read; the tap forwards everything else to the worker.
         self.worker = cast("WorkerControl", WorkerTap(worker, self.metrics))
         self.database = database
-        self.journal_dir = journal_dir
         self.planner = planner
-        self.chunk_period_s, self.tail_s, self.web_stall_tolerance_s = chunk_period_s, tail_s, web_stall_tolerance_s
+        self.twin = twin
+        self.playback: Playback | None = None  # the loaded plan's checked transitions
+        self.plans = PlanPreparer(store=plan_store, planner=planner, twin=twin, database=database, robot=robot)
+        self.tail_s = tail_s
         self.shutdown_wait_s = shutdown_wait_s
-        self.writer = DatabaseWriter(database)
+        self.recorder = RunRecorder(robot, database, journal_dir, chunk_period_s)
         self._lock = threading.RLock()
         self.run: ActiveRun | None = None
         self.recent_run_id: int | None = None
         self._starting: PendingStart | None = None
         self._arming: tuple[list[np.ndarray], list[dict[str, Any]]] | None = None
-        self.links: dict[str, LinkState] = {}
-        self.lease_holder: str | None = None
+        self.consoles = ConsoleLinks(robot, web_stall_tolerance_s)
         self.listeners: list[Listener] = []
         self.latest_sample: dict[str, Any] | None = None
         self.telemetry_lost = 0
-        self.recording_failure: str | None = None  # why the recorder cannot write, in words (None: it can)
-        self._next_probe_s = 0.0
         self._drain_lock = threading.Lock()  # the worker is not replaced in the middle of a drain
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._record_forever, name="robotd-recorder", daemon=True)
@@ -164,8 +117,9 @@ class RobotDaemon:
     # --- lifecycle --------------------------------------------------------------------------------
 
     def start(self) -> None:
-        self.writer.start()
+        self.recorder.start()
         self._thread.start()
+        self.plans.start()
 
     def shutdown(self, reason: str = "the robot daemon shut down") -> None:
         """A run in motion is interrupted with a controlled stop, and its stop recorded, before the end."""
@@ -179,13 +133,13 @@ class RobotDaemon:
         while self.run is not None and self._thread.is_alive() and time.monotonic() < deadline:
             time.sleep(0.05)  # the recorder keeps the stop in the run until the drives are off
         self._stop.set()
+        self.plans.shutdown()
         self._thread.join(10.0)
         self._record_once()  # what the worker produced last
         with self._lock:
             if self.run is not None:
                 self._release(self.run)
-        self.writer.drain()
-        self.writer.stop()
+        self.recorder.stop()
 
     # --- commands ---------------------------------------------------------------------------------
 
@@ -199,11 +153,11 @@ class RobotDaemon:
         cancels the start while it loads, and a reset never lets it begin (issue 20, defect 2)."""
         if estop_generation is None:
             estop_generation = self._estop_request()[0]
-        self._refuse_start_while_recording_fails()
+        self.recorder.refuse_start_while_failing()
         with self.database.session() as session:
-            booking, version, patient = service.startable(session=session, session_id=session_id, robot=self.robot)
+            booking, version, patient = runs.startable(session=session, session_id=session_id, robot=self.robot)
             booking_id, patient_id, version_id = booking.id, booking.patient_id, version.id
-            content, anthropometrics = version.content, service.patient_for_worker(patient)
+            content, anthropometrics = version.content, runs.patient_for_worker(patient)
             session.commit()
         with self._lock:
             if self._starting is not None:
@@ -212,7 +166,7 @@ class RobotDaemon:
                 raise ConflictError(
                     f"robot {self.robot!r} is busy with run {self.run.run_id} (session {self.run.session_id})"
                 )
-            self._take_lease(controller)
+            self.consoles.take_lease(controller)
             starting = self._starting = PendingStart(session_id, estop_generation)
         log.info("session %d: planning and checking its prescription", session_id)
         try:
@@ -220,24 +174,25 @@ class RobotDaemon:
                 self._load(content, anthropometrics, starting)
             except Exception as error:
                 self._refuse_if_cancelled(starting)
-                raise service.refused(error) from error
+                raise runs.refused(error) from error
             with self._lock:  # a stop or an emergency stop from here on finds the start armed or refused
                 self._refuse_if_cancelled(starting)
                 if self.run is not None:
                     self._release(self.run)  # the previous run's tail ends here
                 self._arming = ([], [])
                 try:
-                    self.worker.start_motion(estop_generation=estop_generation)
+                    assert self.playback is not None
+                    self.playback.start(self.worker, estop_generation)
                 except Exception as error:
                     self._arming = None
                     self._refuse_if_cancelled(starting)
-                    raise service.refused(error) from error
+                    raise runs.refused(error) from error
                 starting.armed = True
             try:
                 clock = self.clock()
-                run_id = self.writer.call(
+                run_id = self.recorder.writer.call(
                     lambda s: (
-                        service.record_start(
+                        runs.record_start(
                             session=s,
                             booking_id=booking_id,
                             robot=self.robot,
@@ -282,7 +237,7 @@ class RobotDaemon:
             at = dt.datetime.fromtimestamp(utc_s, dt.UTC) if utc_s is not None else dt.datetime.now(dt.UTC)
             starting.cancelled = f"{why} at {at:%H:%M:%S} UTC"
             log.warning("session %d: start cancelled by %s", starting.session_id, starting.cancelled)
-        if self.planner is not None and not starting.armed:
+        if not starting.armed:
             self.planner.cancel()
 
     def _check_start_against_estop(self) -> None:
@@ -304,25 +259,17 @@ class RobotDaemon:
             )
 
     def _load(self, content: dict[str, Any], patient: dict[str, Any], starting: PendingStart) -> None:
-        generation = starting.estop_generation
-        if self.planner is None:  # a worker that plans itself (tests' in-memory worker)
-            self.worker.load_prescription(content, patient, estop_generation=generation)
-            return
-        plan, report = self.planner.plan(content, patient)
+        plan, report = self.plans.obtain(content, patient, lambda: self._refuse_if_cancelled(starting))
         self._refuse_if_cancelled(starting)
         # The worker refuses this load too if an emergency stop was requested since the start (even if reset).
-        self.worker.load_plan(plan, report, estop_generation=generation)  # type: ignore[attr-defined]
+        self.worker.load_plan(plan, report, estop_generation=starting.estop_generation)
+        self.playback = Playback(self.twin, plan)
 
     def _confirm(
         self, run_id: int, session_id: int, controller: str | None, *, version_id: int, started_by_id: int
     ) -> None:
         """The run is recorded: what arrived since `start_motion` belongs to it."""
-        journal, failure = None, None
-        if self.journal_dir is not None:
-            try:
-                journal = RunJournal(self.journal_dir, run_id, TELEMETRY_DTYPE)
-            except OSError as error:
-                failure = error if error.filename else OSError(error.errno, error.strerror, str(self.journal_dir))
+        journal, failure = self.recorder.open_journal(run_id)
         with self._lock:
             run = ActiveRun(run_id, session_id, controller, journal, version_id=version_id, started_by_id=started_by_id)
             telemetry, events = self._arming or ([], [])
@@ -333,7 +280,7 @@ class RobotDaemon:
             self._take(run, np.concatenate(telemetry) if telemetry else None, events)
 
     def control(
-        self, session_id: int, command: service.RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
+        self, session_id: int, command: runs.RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
     ) -> dict[str, Any] | None:
         """Pause, resume or stop the session's run. Decided, journalled and answered here; the database
         write follows (retried until the database takes it), so that stopping never waits for it. None when
@@ -349,18 +296,33 @@ class RobotDaemon:
                 try:
                     self.worker.stop()
                 except Exception as error:
-                    raise service.refused(error) from error
+                    raise runs.refused(error) from error
         if stops_the_start and starting is not None:
             return self._run_of_stopped_start(starting)
+        transition = None
+        if command != "stop":  # built and checked outside the lock: a stop meanwhile never waits for it
+            with self._lock:
+                run = self.run if self.run is not None and self.run.session_id == session_id else None
+                runs.check_command(run.state if run is not None and run.outcome is None else None, session_id, command)
+                playback = self.playback
+            assert playback is not None
+            try:
+                transition = playback.prepare(command, self.worker)
+            except Exception as error:
+                raise runs.refused(error) from error
         with self._lock:
             run = self.run if self.run is not None and self.run.session_id == session_id else None
             active = run if run is not None and run.outcome is None else None
-            next_state = service.check_command(active.state if active else None, session_id, command)
+            next_state = runs.check_command(active.state if active else None, session_id, command)
             assert active is not None
             try:
-                getattr(self.worker, command)()
+                if transition is None:
+                    self.worker.stop()
+                else:
+                    assert self.playback is not None
+                    self.playback.send(self.worker, transition)
             except Exception as error:
-                raise service.refused(error) from error
+                raise runs.refused(error) from error
             if command == "stop":
                 self._end(
                     active, RunOutcome.STOPPED, "stopped by the operator", stopped_by_id=user_id, credential=credential
@@ -371,8 +333,8 @@ class RobotDaemon:
                 self._journal_decision(
                     active, {"decision": command, "user_id": user_id, "credential": credential, "utc": at}, clock
                 )
-                self.writer.submit(
-                    lambda s: service.record_command(
+                self.recorder.writer.submit(
+                    lambda s: runs.record_command(
                         session=s,
                         run_id=active.run_id,
                         command=command,
@@ -394,13 +356,20 @@ class RobotDaemon:
         return run.record(self.robot) if run is not None and run.session_id == starting.session_id else None
 
     def reset(self, user_id: int) -> None:
-        try:
-            self.worker.reset()
-        except Exception as error:  # the worker's refusal (e.g. reset while idle) is the client's conflict
-            raise service.refused(error) from error
+        """Clear a latched stop. Pressed while the robot still brakes (an emergency stop's ramp lasts at most
+        2 s), it waits for the drives to be off, up to `RESET_WAIT_S`, rather than being refused."""
+        deadline = time.monotonic() + RESET_WAIT_S
+        while True:
+            try:
+                self.worker.reset()
+                break
+            except Exception as error:  # the worker's refusal (e.g. reset while idle) is the client's conflict
+                if STOP_RAMP_RUNNING not in str(error) or time.monotonic() >= deadline:
+                    raise runs.refused(error) from error
+                time.sleep(RESET_RETRY_S)
         clock = self.clock()
-        self.writer.call(
-            lambda s: service.record_robot_command(session=s, user_id=user_id, command="reset", clock=clock)
+        self.recorder.writer.call(
+            lambda s: runs.record_robot_command(session=s, user_id=user_id, command="reset", clock=clock)
         )
 
     def note_emergency_stop(self, user_id: int | None, authenticated: bool, credential: str) -> list[int]:
@@ -413,8 +382,8 @@ class RobotDaemon:
             run_ids = [self.recent_run_id] if self.recent_run_id is not None and self.run is not None else []
             if self.run is not None:
                 self._end(self.run, RunOutcome.EMERGENCY_STOP, "emergency stop", stopped_by_id=user_id)
-        self.writer.submit(
-            lambda s: service.record_emergency_stop(
+        self.recorder.writer.submit(
+            lambda s: runs.record_emergency_stop(
                 session=s,
                 user_id=user_id,
                 authenticated=authenticated,
@@ -435,11 +404,11 @@ class RobotDaemon:
         run = self.run
         return (run.run_id, run.session_id) if run is not None and run.outcome is None else None
 
-    def clock(self) -> service.Clock:
+    def clock(self) -> runs.Clock:
         try:
             state = self.worker.latest_state()
         except Exception:
-            return service.NO_CLOCK
+            return runs.NO_CLOCK
         tick, time_s = state.get("tick"), state.get("time_s")
         return (int(tick) if tick is not None else None), (float(time_s) if time_s is not None else None)
 
@@ -447,51 +416,14 @@ class RobotDaemon:
 
     def link_opened(self, link_id: str, pid: int | None = None, console: str | None = None) -> None:
         with self._lock:
-            self.links[link_id] = LinkState(pid, console=console)
-
-    def _take_lease(self, controller: str | None) -> None:
-        """The session-control lease (issue 15 §2): one console at a time may start motion; it holds the
-        lease while one of its links lives and beats, and the daemon's watchdog follows the link that
-        started the run. The web processes of one `serve --workers N` are one console (issue 20, defect 19:
-        a start on an idle robot landed on another of its processes and was refused)."""
-        if controller is None:
-            return
-        console = self._console_of(controller)
-        now = time.monotonic()
-        holders = [
-            link
-            for link_id, link in self.links.items()
-            if self.lease_holder is not None
-            and self._console_of(link_id) == self.lease_holder
-            and now - link.last_beat_s <= self.web_stall_tolerance_s
-        ]
-        if holders and self.lease_holder != console:
-            raise ConflictError(
-                f"another console (process {holders[0].pid}) holds the session control of robot {self.robot!r}: "
-                "start motion there, or close it first",
-                field="lease",
-            )
-        self.lease_holder = console
-
-    def _console_of(self, link_id: str) -> str:
-        """The console a link serves (its own id when it named none)."""
-        link = self.links.get(link_id)
-        return link.console if link is not None and link.console else link_id
+            self.consoles.opened(link_id, pid, console)
 
     def link_beat(self, link_id: str) -> None:
-        link = self.links.get(link_id)
-        if link is not None:
-            link.last_beat_s = time.monotonic()
+        self.consoles.beat(link_id)
 
     def link_closed(self, link_id: str) -> None:
         with self._lock:
-            link = self.links.pop(link_id, None)
-            if link is not None:
-                link.open = False
-            if self.lease_holder is not None and not any(
-                self._console_of(other) == self.lease_holder for other in self.links
-            ):
-                self.lease_holder = None  # the holder's last link ended
+            self.consoles.closed(link_id)
             self._check_controller(closed=link_id)
 
     def _check_controller(self, closed: str | None = None) -> None:
@@ -499,12 +431,8 @@ class RobotDaemon:
         run = self.run
         if run is None or run.outcome is not None or run.controller is None:
             return
-        link = self.links.get(run.controller)
-        if run.controller == closed or link is None:
-            reason = "the console controlling the run was lost (its process ended)"
-        elif time.monotonic() - link.last_beat_s > self.web_stall_tolerance_s:
-            reason = f"the console controlling the run stopped answering for over {self.web_stall_tolerance_s:g} s"
-        else:
+        reason = self.consoles.lost(run.controller, closed)
+        if reason is None:
             return
         log.warning("run %d: %s; stopping", run.run_id, reason)
         self._end(run, RunOutcome.INTERRUPTED, reason)
@@ -548,29 +476,12 @@ class RobotDaemon:
             except Exception:
                 log.exception("an event listener failed")
 
-    def _journal(self, run: ActiveRun, write: Callable[[RunJournal], None]) -> None:
-        if run.journal is None or run.journal_failed:
-            return
-        try:
-            write(run.journal)
-        except OSError as error:
-            self._recording_failed(run, error)
-
     def _recording_failed(self, run: ActiveRun, error: OSError) -> None:
         """The run's journal cannot be written: stop the robot in a controlled way, now. Nothing is lost
         while the daemon lives: the run's records stay in memory until the database takes them."""
-        run.journal_failed = True
-        name = errno.errorcode.get(error.errno or 0, str(error.errno))
-        self.recording_failure = (
-            f"the recorder cannot write {error.filename}: [Errno {error.errno}] {error.strerror} ({name}); "
-            "the run was stopped; free space on the data disk (or repair it) before the next session"
-        )
-        self._next_probe_s = time.monotonic() + RECORDING_PROBE_PERIOD_S
-        log.error("run %d: %s", run.run_id, self.recording_failure)
-        details = {"errno": error.errno, "error": name, "message": error.strerror, "path": str(error.filename),
-                   "samples_held_in_memory": int(sum(len(records) for records in run.pending))}  # fmt: skip
+        details = self.recorder.note_failure(run, error)
         event = self._daemon_event("recording_failed", details)
-        self._store_events(run.run_id, [event])  # held in the writer's queue until the database takes it
+        self.recorder.store_events(run.run_id, [event])  # held in the writer's queue until the database takes it
         self._announce([event])
         if run.outcome is None:
             self._end(run, RunOutcome.INTERRUPTED, f"recording failed: [Errno {error.errno}] {error.strerror}")
@@ -580,36 +491,6 @@ class RobotDaemon:
                 log.exception("run %d: could not ask the worker for the controlled stop; stopping it", run.run_id)
                 with contextlib.suppress(Exception):
                     self.worker.stop()
-
-    def _probe_recording(self) -> bool:
-        """Can the recorder write again? (A probe file of a second's telemetry, written and removed.)"""
-        if self.journal_dir is None:
-            return True
-        probe = self.journal_dir / ".write-probe"
-        try:
-            self.journal_dir.mkdir(parents=True, exist_ok=True)
-            descriptor = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            try:
-                written = os.write(descriptor, bytes(RECORDING_PROBE_BYTES))
-                os.fsync(descriptor)
-            finally:
-                os.close(descriptor)
-            if written != RECORDING_PROBE_BYTES:
-                return False
-        except OSError:
-            return False
-        finally:
-            with contextlib.suppress(OSError):
-                probe.unlink()
-        if self.recording_failure is not None:
-            log.warning("the recorder can write again (%s)", self.journal_dir)
-        self.recording_failure = None
-        return True
-
-    def _refuse_start_while_recording_fails(self) -> None:
-        failure = self.recording_failure
-        if failure is not None and not self._probe_recording():
-            raise ConflictError(f"robot {self.robot!r} cannot start: {failure}", field="recording")
 
     # --- recording ----------------------------------------------------------------------------------
 
@@ -625,9 +506,7 @@ class RobotDaemon:
         with self._drain_lock:
             telemetry = self.worker.drain_telemetry()
             events = self.worker.drain_events()
-        if self.recording_failure is not None and time.monotonic() >= self._next_probe_s:
-            self._next_probe_s = time.monotonic() + RECORDING_PROBE_PERIOD_S
-            self._probe_recording()
+        self.recorder.probe_when_due()
         if telemetry is not None and len(telemetry):
             last = telemetry[-1]
             self.latest_sample = {name: last[name] for name in telemetry.dtype.names or ()}
@@ -641,81 +520,28 @@ class RobotDaemon:
             elif run is not None:
                 self._take(run, telemetry, events)
             elif events:
-                self._store_events(None, events)
+                self.recorder.store_events(None, events)
             if run is not None:
                 self._check_controller()
                 if run.tail_deadline is not None and time.monotonic() >= run.tail_deadline:
                     self._release(run)
-                elif time.monotonic() - run.last_chunk_s >= self.chunk_period_s:
-                    self._store_chunk(run)
+                else:
+                    self.recorder.store_chunk_when_due(run)
         if events:
             self._announce(events)
 
     def _take(self, run: ActiveRun, telemetry: np.ndarray | None, events: list[dict[str, Any]]) -> None:
-        """Into memory and the journal (survives any crash of the web side), then on to the database."""
-        if telemetry is not None and len(telemetry):
-            records = np.array(telemetry, copy=True)
-            run.pending.append(records)
-            run.sample_count += len(records)
-            self._journal(run, lambda journal: journal.append_telemetry(records))
-        if events:
-            self._store_events(run.run_id, events)
-            self._journal(run, lambda journal: journal.append_events(events))
-            for event in events:
-                if event.get("kind") == "drives_disabled" and run.tail_deadline is not None:
-                    run.tail_deadline = min(run.tail_deadline, time.monotonic() + TAIL_AFTER_DRIVES_OFF_S)
-                outcome = terminal_outcome_of(str(event.get("kind")), event.get("details") or {})
-                if outcome is not None and run.outcome is None:
-                    clock = (event.get("tick"), event.get("tick_time_s"))
-                    self._end(
-                        run, RunOutcome(outcome), str(event.get("kind")), at=event_utc(event.get("utc")), clock=clock
-                    )
-
-    def _store_events(self, run_id: int | None, events: list[dict[str, Any]]) -> None:
-        rows = [
-            SessionEvent(
-                run_id=run_id,
-                kind=str(event.get("kind", "unknown"))[:32],
-                tick=int(event["tick"]) if event.get("tick") is not None else None,
-                tick_time_s=float(event["tick_time_s"]) if event.get("tick_time_s") is not None else None,
-                utc=event_utc(event.get("utc")),
-                detector=str(event["detector"])[:64] if event.get("detector") else None,
-                details=to_jsonable(event.get("details") or {}),
-            )
-            for event in events
-        ]
-
-        def write(session: Session) -> None:
-            with write_transaction(session):
-                session.add_all(rows)
-
-        self.writer.submit(write, retry=True)
-
-    def _store_chunk(self, run: ActiveRun) -> None:
-        run.last_chunk_s = time.monotonic()
-        if not run.pending:
-            return
-        records = np.concatenate(run.pending)
-        run.pending = []
-        sequence, run.sequence = run.sequence, run.sequence + 1
-        run_id = run.run_id
-
-        def write(session: Session) -> None:
-            with write_transaction(session):
-                session.add(
-                    TelemetryChunk(
-                        run_id=run_id,
-                        sequence=sequence,
-                        first_tick=int(records["tick"][0]),
-                        sample_count=len(records),
-                        data=encode_chunk(records),
-                    )
-                )
-                stored = session.get(SessionRun, run_id)
-                if stored is not None:
-                    stored.sample_count += len(records)
-
-        self.writer.submit(write, retry=True)
+        """Recorded (server.robotd.recorder); then what the events decide: a run's end, a shorter tail."""
+        failed = self.recorder.take(run, telemetry, events)
+        if failed is not None:
+            self._recording_failed(run, failed)
+        for event in events:
+            if event.get("kind") == "drives_disabled" and run.tail_deadline is not None:
+                run.tail_deadline = min(run.tail_deadline, time.monotonic() + TAIL_AFTER_DRIVES_OFF_S)
+            outcome = terminal_outcome_of(str(event.get("kind")), event.get("details") or {})
+            if outcome is not None and run.outcome is None:
+                clock = (event.get("tick"), event.get("tick_time_s"))
+                self._end(run, RunOutcome(outcome), str(event.get("kind")), at=event_utc(event.get("utc")), clock=clock)
 
     def _end(
         self,
@@ -724,7 +550,7 @@ class RobotDaemon:
         reason: str,
         *,
         at: dt.datetime | None = None,
-        clock: service.Clock | None = None,
+        clock: runs.Clock | None = None,
         stopped_by_id: int | None = None,
         credential: str | None = None,
     ) -> Any:
@@ -741,8 +567,8 @@ class RobotDaemon:
         elif run.stopped_by_id is None:
             run.stopped_by_id = stopped_by_id
         run_id, decided = run.run_id, run.outcome
-        return self.writer.submit(
-            lambda s: service.end_run(
+        return self.recorder.writer.submit(
+            lambda s: runs.end_run(
                 session=s,
                 run_id=run_id,
                 outcome=decided,
@@ -756,7 +582,7 @@ class RobotDaemon:
         )
 
     @staticmethod
-    def _journal_decision(run: ActiveRun, decision: dict[str, Any], clock: service.Clock) -> None:
+    def _journal_decision(run: ActiveRun, decision: dict[str, Any], clock: runs.Clock) -> None:
         """Before the database: a daemon that dies before the database took it leaves it to recovery."""
         if run.journal is None:
             return
@@ -767,54 +593,7 @@ class RobotDaemon:
             log.exception("run %d: the decision %r could not be journalled", run.run_id, decision.get("decision"))
 
     def _release(self, run: ActiveRun) -> None:
-        """The run's recording is complete: its last chunk goes to the database, then its journal away,
-        once the database holds at least what the journal holds."""
-        self._store_chunk(run)
+        """The run's recording is complete (server.robotd.recorder): the robot is free of it."""
+        self.recorder.release(run)
         if self.run is run:
             self.run = None
-        journal, journal_dir, run_id = run.journal, self.journal_dir, run.run_id
-        if journal is None or journal_dir is None:
-            return
-
-        def remove_once_stored(session: Session) -> None:
-            journaled_samples, journaled_events = journal_counts(journal_dir, run_id)
-            samples = session.scalar(
-                select(func.coalesce(func.sum(TelemetryChunk.sample_count), 0)).where(TelemetryChunk.run_id == run_id)
-            )
-            events = session.scalar(select(func.count()).select_from(SessionEvent).where(SessionEvent.run_id == run_id))
-            if int(samples or 0) < journaled_samples or int(events or 0) < journaled_events:
-                journal.close()
-                log.error(
-                    "run %d: the database holds %s samples and %s events, its journal %d and %d: journal kept at %s",
-                    run_id, samples, events, journaled_samples, journaled_events, journal.directory,
-                )  # fmt: skip
-                return
-            journal.remove()
-
-        self.writer.submit(remove_once_stored, retry=True)
-
-
-def refusal_to_dict(error: Exception) -> dict[str, Any]:
-    """A refusal as it crosses the daemon's socket (server.robotd.link rebuilds it)."""
-    if isinstance(error, InvalidFieldError):
-        return {"type": "invalid", "field": error.field, "value": to_jsonable(error.value), "limit": error.limit}
-    if isinstance(error, NotFoundError):
-        return {"type": "not_found", "resource": error.resource, "resource_id": to_jsonable(error.resource_id)}
-    if isinstance(error, ConflictError):
-        return {"type": "conflict", "message": str(error), "field": error.field}
-    if isinstance(error, WorkerUnavailableError):
-        return {"type": "unavailable", "message": str(error)}
-    return {"type": "error", "message": f"{type(error).__name__}: {error}"}
-
-
-def refusal_from_dict(refusal: dict[str, Any]) -> Exception:
-    kind = refusal.get("type")
-    if kind == "invalid":
-        return InvalidFieldError(str(refusal["field"]), refusal.get("value"), str(refusal.get("limit")))
-    if kind == "not_found":
-        return NotFoundError(str(refusal["resource"]), refusal.get("resource_id"))
-    if kind == "conflict":
-        return ConflictError(str(refusal["message"]), field=refusal.get("field"))
-    if kind == "unavailable":
-        return WorkerUnavailableError(str(refusal["message"]))
-    return RuntimeError(str(refusal.get("message")))

@@ -27,7 +27,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import threading
 import time
 from http.cookies import SimpleCookie
@@ -146,17 +145,16 @@ class StopListener:
 
     def audit(self, token: str | None, answer: estop.StopAnswer) -> None:
         """Who asked, checked and recorded by the daemon (it ends the run too), after the answer."""
-        request = {"cmd": "estop_audit", "token": token, "outcome": answer.outcome.value}
+        from server.messages import AuditListenerStop, exchange
+
         try:
-            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as connection:
-                connection.settimeout(AUDIT_TIMEOUT_S)
-                connection.connect(str(self.paths.socket))
-                connection.sendall((json.dumps(request) + "\n").encode())
-                reply = json.loads(connection.makefile("rb").readline() or b"null")
-            if not reply or not reply.get("ok"):
-                log.error("the robot daemon did not record the emergency stop: %s", reply)
-        except (OSError, ValueError) as error:
+            exchange(
+                str(self.paths.socket), AuditListenerStop(token=token, outcome=answer.outcome.value), AUDIT_TIMEOUT_S
+            )
+        except (OSError, EOFError) as error:
             log.error("the emergency stop could not be audited (robot daemon: %s)", error)
+        except Exception as error:
+            log.error("the robot daemon did not record the emergency stop: %s", error)
 
 
 def _handler(listener: StopListener) -> type[http.server.BaseHTTPRequestHandler]:

@@ -1,5 +1,6 @@
 """The web side's link to its robot: `DaemonLink` to a robot daemon process (the console's way), and
-`LocalLink` to a `RobotDaemon` inside this process (tests with an in-memory worker).
+`LocalLink` to a `RobotDaemon` inside this process (tests with an in-memory worker); `attach_robot` links a
+web process to its robot's daemon, starting the daemon when none runs.
 
 A web process only sends commands and reads state. The emergency stop is a store into the worker's
 control block in shared memory, with no lock, no wait and no message first; the answer then says
@@ -12,32 +13,36 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import json
 import logging
 import os
+import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from typing import Any
 
+from server import messages as msg
 from server.file_modes import private_directory
 from server.realtime.shm import ControlBlock, Seqlock
 from server.realtime.telemetry import TELEMETRY_DTYPE, state_dict
 from server.robotd import estop
-from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon, refusal_from_dict
+from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon
 from server.robotd.estop import ESTOP_CONFIRM_TIMEOUT_S, StopAnswer
+from server.robotd.runs import RunCommand
 from server.robotd.status import (
     COMMAND_STALE_S,
     DAEMON_STALE_S,
     DaemonState,
+    PidFile,
     RobotPaths,
     RobotStatus,
     StatusBlock,
     prioritise_liveness_thread,
 )
-from server.sessions.service import RunCommand
+from server.settings import Settings
 
 log = logging.getLogger("ssp_rehab.robotd")
 
@@ -47,6 +52,11 @@ COMMAND_TIMEOUT_S = 900.0  # a start waits for the prescription check, which may
 MAX_EVENTS_KEPT = 256
 RESPAWN_PERIOD_S = 5.0
 CONSOLE_ID_ENVIRONMENT = "SSP_REHAB_CONSOLE_ID"
+DAEMON_LOCK_WAIT_S = 120.0  # a daemon's imports before it takes its lock, on a loaded machine
+# Its controlled stop, the recorder's tail and the flush take seconds; a worker still compiling its kernels
+# (a cold cache) lets the daemon end only once it has started.
+DAEMON_STOP_TIMEOUT_S = 900.0
+WEB_SWITCH_INTERVAL_S = 0.001
 ANOTHER_CONSOLES_DAEMON = "the robot daemon is starting (started by another web process of this robot)"
 
 
@@ -133,7 +143,9 @@ class DaemonLink:
                 from server.robotd.process import daemon_running
 
                 if daemon_running(self.paths):
-                    return RobotStatus(DaemonState.STARTING, ANOTHER_CONSOLES_DAEMON, _pid_in(self.paths))
+                    pid_file = PidFile.read(self.paths)
+                    pid = pid_file.pid if pid_file is not None else None
+                    return RobotStatus(DaemonState.STARTING, ANOTHER_CONSOLES_DAEMON, pid)
             return RobotStatus(DaemonState.ABSENT, "no robot daemon runs for this robot")
         return self._status.read(stale_s)
 
@@ -166,9 +178,8 @@ class DaemonLink:
         # The emergency stops requested so far: one requested after this moment cancels the start.
         control = self._control
         generation = control.estop_request()[0] if control is not None else None
-        return int(
-            self._request(
-                "start",
+        run_id: int = self._request(
+            msg.StartSession(
                 session_id=session_id,
                 user_id=user_id,
                 link_id=self.link_id,
@@ -176,6 +187,7 @@ class DaemonLink:
                 control_name=control.name if control is not None else None,
             )
         )
+        return run_id
 
     def control(
         self, session_id: int, command: RunCommand, user_id: int, credential: str = VERIFIED_LOGIN
@@ -183,22 +195,27 @@ class DaemonLink:
         """The run as the daemon knows it once it decided (it never waits for the database); None when a stop
         cancelled the session's start while it was still loading."""
         run: dict[str, Any] | None = self._request(
-            "control", session_id=session_id, command=command, user_id=user_id, credential=credential
+            msg.ControlRun(session_id=session_id, command=command, user_id=user_id, credential=credential)
         )
         return run
 
     def reset(self, user_id: int) -> None:
-        self._request("reset", user_id=user_id)
+        self._request(msg.ResetRobot(user_id=user_id))
 
     def note_emergency_stop(self, user_id: int | None, authenticated: bool, credential: str) -> list[int]:
         result: list[int] = self._request(
-            "estop_note", user_id=user_id, authenticated=authenticated, credential=credential, timeout_s=10.0
+            msg.NoteEmergencyStop(user_id=user_id, authenticated=authenticated, credential=credential), timeout_s=10.0
         )
         return result
 
     def metrics_text(self) -> str:
-        text: str = self._request("metrics", timeout_s=2.0)
+        text: str = self._request(msg.Metrics(), timeout_s=2.0)
         return text
+
+    def plan_status(self, session_id: int) -> dict[str, Any] | None:
+        """The booking's plan state on this robot (`server.robotd.plans`); queues the plan if needed."""
+        state: dict[str, Any] | None = self._request(msg.PlanStatus(session_id=session_id), timeout_s=5.0)
+        return state
 
     def active_run(self) -> tuple[int, int] | None:
         status = self.status()
@@ -208,26 +225,18 @@ class DaemonLink:
             return None
         return status.active_run_id, status.active_session_id
 
-    def _request(self, request: str, /, *, timeout_s: float = COMMAND_TIMEOUT_S, **arguments: Any) -> Any:
+    def _request(self, request: msg.DaemonRequest, *, timeout_s: float = COMMAND_TIMEOUT_S) -> Any:
         from server.errors import WorkerUnavailableError
 
         status = self.status(COMMAND_STALE_S)
         if not status.ready:
             raise WorkerUnavailableError(f"robot {self.robot!r} is {status.state.label}: {status.reason}")
         try:
-            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as connection:
-                connection.settimeout(timeout_s)
-                connection.connect(str(self.paths.socket))
-                connection.sendall((json.dumps({"cmd": request, **arguments}) + "\n").encode())
-                reply = connection.makefile("rb").readline()
+            return msg.exchange(str(self.paths.socket), request, timeout_s)
         except OSError as error:
             raise WorkerUnavailableError(f"robot {self.robot!r}: the robot daemon did not answer ({error})") from error
-        if not reply:
-            raise WorkerUnavailableError(f"robot {self.robot!r}: the robot daemon closed the connection")
-        message = json.loads(reply)
-        if not message["ok"]:
-            raise refusal_from_dict(message["error"])
-        return message["result"]
+        except EOFError as error:
+            raise WorkerUnavailableError(f"robot {self.robot!r}: {error}") from error
 
     # --- the link ----------------------------------------------------------------------------------------
 
@@ -250,6 +259,8 @@ class DaemonLink:
 
         if not self.restart_absent or time.monotonic() - self._last_spawn_s < RESPAWN_PERIOD_S:
             return
+        if self._closed.is_set():
+            return  # this web process is ending: its console may be stopping the daemon on purpose
         if self._spawned is not None and self._spawned.poll() is None:
             return  # still starting up (it takes the lock only once its imports are done)
         if not daemon_running(self.paths):
@@ -265,40 +276,45 @@ class DaemonLink:
         connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             connection.connect(str(self.paths.socket))
-            hello_request = {"cmd": "hello", "persistent": True, "web_pid": os.getpid(), "console": console_id()}
-            connection.sendall((json.dumps(hello_request) + "\n").encode())
+            hello = msg.Hello(persistent=True, web_pid=os.getpid(), console=console_id())
+            connection.sendall(msg.encode_line(hello))
             reader = connection.makefile("rb")
-            hello = json.loads(reader.readline() or b"null")
-            if not hello or not hello.get("ok"):
+            line = reader.readline()
+            if not line:
                 return
-            self._attach(hello["result"])
-            self.link_id = hello["result"]["link_id"]
+            try:
+                names: msg.DaemonNames = msg.decode_reply(line, hello)
+            except Exception as error:
+                log.warning("the robot daemon refused the link: %s", error)
+                return
+            self._attach(names)
+            self.link_id = names.link_id
             self._socket = connection
             self._linked_since_spawn = True
             self._connected.set()
             beating = threading.Thread(target=self._beat, args=(connection,), name="robot-link-beat", daemon=True)
             beating.start()
             for line in reader:  # until the daemon's end closes the socket
-                message = json.loads(line)
-                if message.get("push") == "events":
-                    self._events.extend(message["events"])
-                elif message.get("push") == "ready":
-                    self._attach(message)
+                match msg.decode_push(line):
+                    case msg.EventsPush(events=events):
+                        self._events.extend(events)
+                    case msg.ReadyPush(names=names):
+                        self._attach(names)
         finally:
             self._connected.clear()
             self._socket = None
             with contextlib.suppress(OSError):
                 connection.close()
 
-    def _attach(self, names: dict[str, Any]) -> None:
+    def _attach(self, names: msg.DaemonNames) -> None:
         with self._attach_lock:
-            if names.get("realtime") is not None:
-                self.realtime = names["realtime"]
-            if names.get("status_name") and (self._status is None or self._status.name != names["status_name"]):
-                self._status = StatusBlock(names["status_name"])
-            if names.get("control_name") and (self._control is None or self._control.name != names["control_name"]):
-                self._control = ControlBlock(names["control_name"])
-                self._state = Seqlock(TELEMETRY_DTYPE, names["state_name"])
+            if names.realtime is not None:
+                self.realtime = names.realtime
+            if names.status_name and (self._status is None or self._status.name != names.status_name):
+                self._status = StatusBlock(names.status_name)
+            if names.control_name and (self._control is None or self._control.name != names.control_name):
+                self._control = ControlBlock(names.control_name)
+                self._state = Seqlock(TELEMETRY_DTYPE, names.state_name)
 
     def _beat(self, connection: socket.socket) -> None:
         prioritise_liveness_thread("the robot link's beat")
@@ -317,6 +333,19 @@ class DaemonLink:
             with contextlib.suppress(OSError):
                 connection.shutdown(socket.SHUT_RDWR)
         self._thread.join(2.0)
+        self._settle_spawned()
+
+    def _settle_spawned(self) -> None:
+        """A daemon this process started that has not taken the robot's lock yet (still importing) is waited
+        for until it takes it or exits: the console that started it then finds it, to stop it or leave it."""
+        from server.robotd.process import daemon_running
+
+        spawned = self._spawned
+        deadline = time.monotonic() + DAEMON_LOCK_WAIT_S
+        while spawned is not None and spawned.poll() is None and time.monotonic() < deadline:
+            if daemon_running(self.paths) and PidFile.read(self.paths) is not None:
+                return
+            time.sleep(0.05)
 
 
 class LocalLink:
@@ -344,7 +373,7 @@ class LocalLink:
     def status(self, stale_s: float = DAEMON_STALE_S) -> RobotStatus:
         run = self.daemon.active_run()
         run_id, session_id = run or (None, None)
-        failure = self.daemon.recording_failure
+        failure = self.daemon.recorder.failure
         return RobotStatus(DaemonState.READY, "in-process robot", os.getpid(), run_id, session_id, failure)
 
     def latest_state(self) -> dict[str, Any]:
@@ -382,6 +411,9 @@ class LocalLink:
     def metrics_text(self) -> str:
         return self.daemon.metrics_text()
 
+    def plan_status(self, session_id: int) -> dict[str, Any] | None:
+        return self.daemon.plans.status(session_id)
+
     def active_run(self) -> tuple[int, int] | None:
         return self.daemon.active_run()
 
@@ -395,15 +427,9 @@ def console_id() -> str:
     return os.environ.get(CONSOLE_ID_ENVIRONMENT) or f"process-{os.getpid()}"
 
 
-def _pid_in(paths: RobotPaths) -> int | None:
-    """The daemon's pid from its pid file (None while it has not written it yet)."""
-    with contextlib.suppress(OSError, ValueError, IndexError):
-        return int(paths.pid.read_text().split()[0])
-    return None
-
-
 def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes]:
-    """`ssp-rehab robot --robot NAME` in its own session, so that it outlives this web process."""
+    """`ssp-rehab robot --robot NAME` in its own session, so that it outlives this web process; it names
+    this process's console as the one that started it (`stop_started_daemon`)."""
     private_directory(paths.directory)
     with paths.log.open("ab") as log_file:
         return subprocess.Popen(
@@ -416,6 +442,8 @@ def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -
                 paths.robot,
                 "--data-dir",
                 str(paths.data_dir),
+                "--started-by",
+                console_id(),
             ],
             env={**os.environ, **(environment or {})},
             stdin=subprocess.DEVNULL,
@@ -432,3 +460,93 @@ def ensure_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) 
     if daemon_running(paths):
         return None
     return spawn_daemon(paths, environment)
+
+
+@dataclass(frozen=True)
+class DaemonEnd:
+    ended: bool  # it ended, and released the robot's lock, before the timeout
+    clean: bool  # through its own shutdown (a run in motion stopped under control, records flushed)
+
+
+def running_daemon(paths: RobotPaths) -> PidFile | None:
+    """The pid file of the daemon holding the robot's lock, or None when none holds it. A daemon writes its
+    pid file just after taking the lock: that moment is waited out."""
+    from server.robotd.process import daemon_running
+
+    deadline = time.monotonic() + DAEMON_LOCK_WAIT_S
+    while daemon_running(paths):
+        pid_file = PidFile.read(paths)
+        if pid_file is not None and _alive(pid_file.pid):
+            return pid_file
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(0.05)
+    return None
+
+
+def stop_daemon(paths: RobotPaths, daemon: PidFile, timeout_s: float = DAEMON_STOP_TIMEOUT_S) -> DaemonEnd:
+    """SIGTERM, as systemd stops it: its shutdown interrupts a run in motion with a controlled stop and
+    flushes the records, then it removes its pid file and releases the lock. Waits for that."""
+    from server.robotd.process import daemon_running
+
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(daemon.pid, signal.SIGTERM)
+    deadline = time.monotonic() + timeout_s
+    while (daemon_running(paths) or _alive(daemon.pid)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    ended = not daemon_running(paths) and not _alive(daemon.pid)
+    left = PidFile.read(paths)  # a daemon that ended without its shutdown leaves its pid file
+    return DaemonEnd(ended, ended and (left is None or left.pid != daemon.pid))
+
+
+def _alive(pid: int) -> bool:
+    """True while `pid` runs (a zombie, dead but not yet reaped by its parent, does not count)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+
+
+DAEMON_SETTINGS = (
+    "database_url",
+    "backend",
+    "robot_file",
+    "control_rate_hz",
+    "can_interface",
+    "can_channel",
+    "can_simulated_drives",
+    "drive_communication_timeout_s",
+    "log_flush_interval_s",
+    "estop_host",
+    "estop_port",
+    "console_port",
+    "realtime_cpu",
+    "plan_store_max_mb",
+)
+
+
+def daemon_environment(settings: Settings) -> dict[str, str]:
+    """The settings a daemon started by this web process must share with it (command-line options
+    included), as its environment."""
+    environment = {}
+    for name in DAEMON_SETTINGS:
+        value = getattr(settings, name)
+        if value is not None:
+            environment[f"SSP_REHAB_{name.upper()}"] = str(value)
+    return environment
+
+
+def attach_robot(settings: Settings) -> DaemonLink:
+    """This web process's link to the daemon of `settings.robot`; starts the daemon when none runs.
+    Returns at once: the link reports "starting" or "absent" until the daemon is ready."""
+    # Shorter GIL turns keep /estop and /health answering among busy request threads (a large upload).
+    sys.setswitchinterval(min(sys.getswitchinterval(), WEB_SWITCH_INTERVAL_S))
+    paths = RobotPaths(settings.data_dir.resolve(), settings.robot)
+    environment = daemon_environment(settings)
+    spawned = ensure_daemon(paths, environment)
+    if spawned is not None:
+        log.info("started the robot daemon for %s (log: %s)", settings.robot, paths.log)
+    link = DaemonLink(paths, restart_absent=True, environment=environment, spawned=spawned)
+    link.open()
+    return link

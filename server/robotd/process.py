@@ -2,13 +2,13 @@
 
 It holds an exclusive `flock` on `robots/NAME.lock` for its lifetime (a second daemon for the same robot
 refuses to start), writes `robots/NAME.pid`, publishes its status record in shared memory every 20 ms,
-and serves web processes on the Unix socket `robots/NAME.sock` with one JSON object per line:
+and serves web processes on the Unix socket `robots/NAME.sock` with one typed message (server.messages) a line:
 
-- `{"cmd": "hello", "persistent": true}` opens a console's link: the answer names the shared-memory
+- `Hello(persistent=True)` opens a console's link: the answer names the shared-memory
   blocks (status, control flags, latest state); the link then carries `beat`s from the console and
   pushes events to it. The daemon watches the link: its end (the console process died) or 1 s of
   silence stops a run that console started;
-- `start`, `control`, `reset`, `estop_note`, `estop_audit`, `active_run`: one request and one answer each.
+- every other request (start, control, reset, …) has one answer, a `DaemonReply`.
 
 Beside it runs its emergency-stop listener (`server.robotd.estop_listener`), a child process that ends with it.
 
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import json
 import logging
 import os
 import signal
@@ -39,16 +38,23 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
+from core.robot import default_twin, load_twin
+from server import messages as msg
 from server.db import Database, create_database_engine, upgrade_database
+from server.errors import InvalidFieldError
 from server.file_modes import private_directory
 from server.realtime.client import WorkerClient
 from server.realtime.scheduling import RealtimeReport, parse_cpu_request
-from server.robotd.daemon import VERIFIED_LOGIN, RobotDaemon, refusal_to_dict
+from server.robotd.daemon import DAEMON_STOPPED, RobotDaemon
+from server.robotd.plan_store import PlanStore
 from server.robotd.planner import Planner
 from server.robotd.recovery import recover_open_runs
 from server.robotd.status import (
     STATUS_PERIOD_S,
     DaemonState,
+    PidFile,
     RobotPaths,
     StatusBlock,
     prioritise_liveness_thread,
@@ -85,7 +91,8 @@ def take_lock(paths: RobotPaths) -> int:
         fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(descriptor)
-        owner = paths.pid.read_text().strip() if paths.pid.exists() else "unknown"
+        pid_file = PidFile.read(paths)
+        owner = pid_file.pid if pid_file is not None else "unknown"
         raise AlreadyRunning(f"a robot daemon for {paths.robot!r} is already running (pid {owner})") from None
     return descriptor
 
@@ -105,8 +112,9 @@ def daemon_running(paths: RobotPaths) -> bool:
 
 
 class RobotDaemonProcess:
-    def __init__(self, settings: Settings, robot: str) -> None:
+    def __init__(self, settings: Settings, robot: str, started_by: str | None = None) -> None:
         self.settings = settings
+        self.started_by = started_by  # the console (`serve`) that started this daemon and stops it on its exit
         self.paths = RobotPaths(settings.data_dir.resolve(), robot)
         self.state, self.reason = DaemonState.STARTING, "starting: recovering open runs"
         self.status: StatusBlock | None = None  # created once the lock is ours
@@ -118,8 +126,10 @@ class RobotDaemonProcess:
         self.link_consoles: dict[str, str | None] = {}  # the console (`serve`) each link's web process serves
         self._links_lock = threading.Lock()
         self._stop = threading.Event()
+        self._stopped_by: str | None = None  # the signal that asked this daemon to end
         self._worker_lost = False
         self._worker_restarted_s: float | None = None  # the last restart of a dead worker
+        self._restarting: threading.Thread | None = None  # the thread starting a new worker, if any
         self._started_s = time.monotonic()
         self.database: Database | None = None
         self.estop_listener: subprocess.Popen[bytes] | None = None
@@ -138,7 +148,7 @@ class RobotDaemonProcess:
         reason = self.reason
         if self.state is DaemonState.STARTING:  # progress while it warms up: the step and how long so far
             reason = f"{reason} ({time.monotonic() - self._started_s:.0f} s so far)"
-        recording_failure = self.daemon.recording_failure if self.daemon is not None else None
+        recording_failure = self.daemon.recorder.failure if self.daemon is not None else None
         self.status.publish(self.state, reason, os.getpid(), run, recording_failure)
 
     def _beat_forever(self) -> None:
@@ -186,9 +196,10 @@ class RobotDaemonProcess:
         if self.daemon is not None:
             self.daemon.worker_lost(reason, details)
         if restart:
-            threading.Thread(
+            self._restarting = threading.Thread(
                 target=self._restart_worker, args=(worker, details), name="robotd-worker-restart", daemon=True
-            ).start()
+            )
+            self._restarting.start()
 
     def _new_worker(self) -> WorkerClient:
         settings = self.settings
@@ -227,7 +238,7 @@ class RobotDaemonProcess:
         self._name_shared_memory(worker)
         self._worker_lost = False
         self.set_state(DaemonState.READY, "a new real-time worker runs (drives off): reset the robot")
-        self.push({"push": "ready", **self.hello()})
+        self.push(msg.ReadyPush(names=self.hello()))
 
     def realtime(self, worker: WorkerClient | None = None) -> dict[str, Any] | None:
         """The worker's scheduling as /health shows it (None until the worker runs)."""
@@ -250,63 +261,58 @@ class RobotDaemonProcess:
 
     # --- the socket -------------------------------------------------------------------------------
 
-    def hello(self) -> dict[str, Any]:
+    def hello(self, link_id: str | None = None) -> msg.DaemonNames:
         worker = self.worker if self.state is not DaemonState.STARTING else None
-        return {
-            "robot": self.paths.robot,
-            "pid": os.getpid(),
-            "status_name": self.status.name if self.status is not None else None,
-            "control_name": worker.control.name if worker is not None else None,
-            "state_name": worker.state.name if worker is not None else None,
-            "realtime": self.realtime(),
-        }
+        return msg.DaemonNames(
+            robot=self.paths.robot,
+            pid=os.getpid(),
+            status_name=self.status.name if self.status is not None else None,
+            control_name=worker.control.name if worker is not None else None,
+            state_name=worker.state.name if worker is not None else None,
+            realtime=self.realtime(),
+            link_id=link_id,
+        )
 
-    def push(self, message: dict[str, Any]) -> None:
+    def push(self, message: msg.DaemonPush) -> None:
         """To every console link; never blocks (a console that does not read loses pushes, not the daemon)."""
-        data = (json.dumps(message) + "\n").encode()
+        data = msg.encode_line(message)
         with self._links_lock:
             links = list(self.links.values())
         for link in links:
             with contextlib.suppress(OSError):
                 link.send(data, socket.MSG_DONTWAIT)
 
-    def handle(self, request: dict[str, Any]) -> Any:
-        command = request.get("cmd")
-        if command == "hello":
+    def handle(self, request: msg.DaemonRequest) -> Any:
+        if isinstance(request, msg.Hello):
             return self.hello()
         daemon = self.daemon
         if daemon is None:
             from server.errors import WorkerUnavailableError
 
             raise WorkerUnavailableError(f"robot {self.paths.robot!r} is {self.state.label}: {self.reason}")
-        if command == "start":
-            # The emergency-stop count the console read when the start was asked for, if read from this worker.
-            worker = self.worker
-            same_worker = worker is not None and request.get("control_name") == worker.control.name
-            generation = request.get("estop_generation") if same_worker else None
-            return daemon.start_session(
-                int(request["session_id"]),
-                int(request["user_id"]),
-                request.get("link_id"),
-                int(generation) if generation is not None else None,
-            )
-        if command == "control":
-            credential = str(request.get("credential") or VERIFIED_LOGIN)
-            return daemon.control(int(request["session_id"]), request["command"], int(request["user_id"]), credential)
-        if command == "reset":
-            daemon.reset(int(request["user_id"]))
-            return None
-        if command == "estop_note":
-            return daemon.note_emergency_stop(
-                request.get("user_id"), bool(request["authenticated"]), request["credential"]
-            )
-        if command == "estop_audit":  # from the stop listener, after its answer: who asked, checked here
-            return self.audit_listener_stop(request.get("token"), str(request.get("outcome")))
-        if command == "active_run":
-            return daemon.active_run()
-        if command == "metrics":
-            return daemon.metrics_text()
-        raise ValueError(f"cmd = {command!r}: unknown")
+        match request:
+            case msg.StartSession():
+                # The emergency-stop count the console read when the start was asked for, if read from this worker.
+                worker = self.worker
+                same_worker = worker is not None and request.control_name == worker.control.name
+                generation = request.estop_generation if same_worker else None
+                return daemon.start_session(request.session_id, request.user_id, request.link_id, generation)
+            case msg.ControlRun():
+                return daemon.control(request.session_id, request.command, request.user_id, request.credential)
+            case msg.ResetRobot():
+                daemon.reset(request.user_id)
+                return None
+            case msg.NoteEmergencyStop():
+                return daemon.note_emergency_stop(request.user_id, request.authenticated, request.credential)
+            case msg.AuditListenerStop():  # from the stop listener, after its answer: who asked, checked here
+                return self.audit_listener_stop(request.token, request.outcome)
+            case msg.ActiveRun():
+                return daemon.active_run()
+            case msg.PlanStatus():
+                return daemon.plans.status(request.session_id)
+            case msg.Metrics():
+                return daemon.metrics_text()
+        raise ValueError(f"request = {request!r}: unknown")
 
     def audit_listener_stop(self, token: str | None, outcome: str) -> list[int]:
         """The stop listener's stop: who asked (the token it carried, checked as the web side checks it)."""
@@ -332,7 +338,7 @@ class RobotDaemonProcess:
         if self.daemon is not None:
             self.daemon.link_opened(link_id, web_pid, console)
         try:
-            _send(connection, {"ok": True, "result": {**self.hello(), "link_id": link_id}})
+            connection.sendall(msg.encode_line(msg.DaemonReply(result=self.hello(link_id))))
             for line in reader:
                 if self.daemon is not None and line.strip():
                     self.daemon.link_beat(link_id)
@@ -348,15 +354,20 @@ class RobotDaemonProcess:
 
     # --- lifecycle ----------------------------------------------------------------------------------
 
+    def _on_stop_signal(self, signum: int, _frame: Any) -> None:
+        self._stopped_by = self._stopped_by or signal.Signals(signum).name
+        self._stop.set()
+
     def run(self) -> int:
         lock = take_lock(self.paths)
-        previous_pid = _pid_left_by_a_crash(self.paths)
-        self.paths.pid.write_text(f"{os.getpid()}\n")
+        left = PidFile.read(self.paths)  # a clean end removes it: one left behind is a crashed daemon's
+        previous_pid = left.pid if left is not None else None
+        self.paths.pid.write_text(PidFile(os.getpid(), self.started_by).text())
         _unlink_stale_shared_memory(self.paths)
         self.status = status = StatusBlock()
         self.paths.shared_memory.write_text(status.name + "\n")
         for signum in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(signum, lambda *_: self._stop.set())
+            signal.signal(signum, self._on_stop_signal)
         self._publish()
         beats = threading.Thread(target=self._beat_forever, name="robotd-status", daemon=True)
         beats.start()
@@ -390,16 +401,18 @@ class RobotDaemonProcess:
                 database=database,
                 journal_dir=self.paths.journal,
                 planner=self.planner,
+                twin=load_twin(self.worker.twin_path) if self.worker.twin_path else default_twin(),
+                plan_store=PlanStore(settings.data_dir.resolve() / "plans", settings.plan_store_max_mb * 1_000_000),
                 chunk_period_s=settings.log_flush_interval_s,
             )
-            self.daemon.listeners.append(lambda events: self.push({"push": "events", "events": events}))
+            self.daemon.listeners.append(lambda events: self.push(msg.EventsPush(events=events)))
             with self._links_lock:
                 for link_id, web_pid in self.link_pids.items():
                     self.daemon.link_opened(link_id, web_pid, self.link_consoles.get(link_id))
             self.daemon.start()
             wait_for_estop_listener(self.paths, self.estop_listener)
             self.set_state(DaemonState.READY, f"backend {settings.backend} at {settings.control_rate_hz} Hz")
-            self.push({"push": "ready", **self.hello()})
+            self.push(msg.ReadyPush(names=self.hello()))
             self._stop.wait()
             self.set_state(DaemonState.STOPPING, "shutting down")
             return 0
@@ -412,7 +425,12 @@ class RobotDaemonProcess:
             if self.estop_listener is not None:
                 self.estop_listener.terminate()
             if self.daemon is not None:
-                self.daemon.shutdown()
+                if self._stopped_by is not None:
+                    self.daemon.shutdown(f"{DAEMON_STOPPED} ({self._stopped_by})")
+                else:
+                    self.daemon.shutdown()
+            if self._restarting is not None:  # a worker being started now is ended with the daemon, not left
+                self._restarting.join(WORKER_START_TIMEOUT_S)
             if self.worker is not None and self.worker.process is not None:
                 self.worker.shutdown()
             if self.planner is not None:
@@ -431,13 +449,6 @@ class RobotDaemonProcess:
             if engine is not None:
                 engine.dispose()
             os.close(lock)
-
-
-def _pid_left_by_a_crash(paths: RobotPaths) -> int | None:
-    """The pid file of a daemon that did not end cleanly (a clean end removes it)."""
-    with contextlib.suppress(OSError, ValueError, IndexError):
-        return int(paths.pid.read_text().split()[0])
-    return None
 
 
 ESTOP_LISTENER_START_S = 120.0  # its imports on a loaded machine; the worker's compile usually takes longer
@@ -494,10 +505,6 @@ def _unlink_stale_shared_memory(paths: RobotPaths) -> None:
     paths.shared_memory.unlink()
 
 
-def _send(connection: socket.socket, message: dict[str, Any]) -> None:
-    connection.sendall((json.dumps(message, default=str) + "\n").encode())
-
-
 def _serve_socket(owner: RobotDaemonProcess) -> socketserver.UnixStreamServer:
     class Handler(socketserver.StreamRequestHandler):
         def handle(self) -> None:
@@ -505,20 +512,23 @@ def _serve_socket(owner: RobotDaemonProcess) -> socketserver.UnixStreamServer:
             if not line:
                 return
             try:
-                request = json.loads(line)
-            except ValueError:
+                request = msg.decode_request(line)
+            except msgspec.ValidationError as error:  # named: the field and what was wrong with it
+                reply = msg.DaemonReply(refusal=msg.refusal_of(InvalidFieldError("request", line[:200], str(error))))
+            except msgspec.DecodeError:
                 return
-            if request.get("cmd") == "hello" and request.get("persistent"):
-                owner.serve_link(self.connection, self.rfile, request.get("web_pid"), request.get("console"))
-                return
-            try:
-                reply = {"ok": True, "result": owner.handle(request)}
-            except Exception as error:
-                if not isinstance(error, (LookupError, RuntimeError, ValueError)):
-                    log.exception("robot daemon command %r failed", request.get("cmd"))
-                reply = {"ok": False, "error": refusal_to_dict(error)}
+            else:
+                if isinstance(request, msg.Hello) and request.persistent:
+                    owner.serve_link(self.connection, self.rfile, request.web_pid, request.console)
+                    return
+                try:
+                    reply = msg.DaemonReply(result=owner.handle(request))
+                except Exception as error:
+                    if not isinstance(error, (LookupError, RuntimeError, ValueError)):
+                        log.exception("robot daemon command %r failed", request)
+                    reply = msg.DaemonReply(refusal=msg.refusal_of(error))
             with contextlib.suppress(OSError):
-                _send(self.connection, reply)
+                self.connection.sendall(msg.encode_line(reply))
 
     class Server(socketserver.ThreadingMixIn, socketserver.UnixStreamServer):
         daemon_threads = True
@@ -534,6 +544,6 @@ def _serve_socket(owner: RobotDaemonProcess) -> socketserver.UnixStreamServer:
     return server
 
 
-def run_robot_daemon(settings: Settings, robot: str) -> int:
+def run_robot_daemon(settings: Settings, robot: str, started_by: str | None = None) -> int:
     """Process entry (`ssp-rehab robot`): the exit code."""
-    return RobotDaemonProcess(settings, robot).run()
+    return RobotDaemonProcess(settings, robot, started_by).run()

@@ -15,11 +15,10 @@ import numpy as np
 from sqlalchemy import func, select
 
 from server.db import Database, write_transaction
-from server.jsonable import to_jsonable
+from server.robotd import runs
 from server.robotd.journal import read_decisions, read_journal, remove_journal
-from server.sessions import service
-from server.sessions.models import ACTIVE_STATES, RunOutcome, SessionEvent, SessionRun, TelemetryChunk
-from server.sessions.recorder import decode_chunk, encode_chunk, event_utc
+from server.robotd.models import ACTIVE_STATES, RunOutcome, SessionEvent, SessionRun, TelemetryChunk
+from server.robotd.records import decode_chunk, encode_chunk, event_row, event_utc
 
 log = logging.getLogger("ssp_rehab.robotd")
 
@@ -101,18 +100,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid
             if _event_key(str(event.get("kind")), utc) in stored:
                 continue
             recovered_events += 1
-            session.add(
-                SessionEvent(
-                    run_id=run_id,
-                    kind=str(event.get("kind", "unknown"))[:32],
-                    tick=event.get("tick"),
-                    tick_time_s=event.get("tick_time_s"),
-                    utc=utc,
-                    detector=str(event["detector"])[:64] if event.get("detector") else None,
-                    details=to_jsonable(event.get("details") or {}),
-                    user_id=event.get("user_id"),
-                )
-            )
+            session.add(event_row(run_id, event))
         if _event_key("daemon_lost", last_moment) not in stored:
             session.add(
                 SessionEvent(
@@ -132,7 +120,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid
             )
     with database.session() as session:
         if end is not None:  # decided and journalled by the daemon before the database heard of it
-            service.end_run(
+            runs.end_run(
                 session=session,
                 run_id=run_id,
                 outcome=RunOutcome(end["outcome"]),
@@ -143,7 +131,7 @@ def _recover(database: Database, run_id: int, journal_dir: Path, lost_daemon_pid
                 credential=end.get("credential"),
             )
         else:
-            service.end_run(
+            runs.end_run(
                 session=session,
                 run_id=run_id,
                 outcome=RunOutcome.INTERRUPTED,

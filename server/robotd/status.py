@@ -62,6 +62,29 @@ STATUS_DTYPE = np.dtype(
 
 
 @dataclass(frozen=True)
+class PidFile:
+    """A daemon's pid file: its pid and, when a console (`serve`) started it, that console's id, so that
+    only that console stops it when it exits."""
+
+    pid: int
+    started_by: str | None = None
+
+    def text(self) -> str:
+        return f"{self.pid}\n" + (f"started-by {self.started_by}\n" if self.started_by else "")
+
+    @classmethod
+    def read(cls, paths: RobotPaths) -> PidFile | None:
+        """None while there is none (or it is being written)."""
+        try:
+            lines = paths.pid.read_text().splitlines()
+            pid = int(lines[0].split()[0])
+        except (OSError, ValueError, IndexError):
+            return None
+        owners = [line.removeprefix("started-by ").strip() for line in lines[1:] if line.startswith("started-by ")]
+        return cls(pid, owners[0] or None if owners else None)
+
+
+@dataclass(frozen=True)
 class RobotPaths:
     data_dir: Path
     robot: str

@@ -4,6 +4,7 @@ feed (`/therapists/{id}/calendar.ics` with a login, `/calendar/{token}.ics` for 
 from __future__ import annotations
 
 import datetime as dt
+import logging
 from typing import Annotated, Literal
 from zoneinfo import ZoneInfo
 
@@ -16,8 +17,16 @@ from server.auth.access import ObjectAccess, patients_in_care, require_object, r
 from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.scheduling import service
-from server.scheduling.schemas import RobotName, ScheduleCreate, ScheduledSessionOut, ScheduleUpdate, WeekOut
+from server.scheduling.schemas import (
+    PlanStateOut,
+    RobotName,
+    ScheduleCreate,
+    ScheduledSessionOut,
+    ScheduleUpdate,
+    WeekOut,
+)
 
+logger = logging.getLogger(__name__)
 router = APIRouter(tags=["scheduling"], dependencies=[Depends(current_user), ObjectAccess])
 # Calendar apps cannot log in: the secret in the path is the credential, one per therapist, revocable.
 public_router = APIRouter(tags=["scheduling"])
@@ -98,30 +107,52 @@ def schedule_week(
     responses={409: {"description": "The robot or the patient is already booked"}},
 )
 def create_sessions(
-    data: ScheduleCreate, session: SessionDep, user: CurrentUser, zone: ClinicZone
+    data: ScheduleCreate, session: SessionDep, user: CurrentUser, zone: ClinicZone, request: Request
 ) -> list[ScheduledSessionOut]:
     """Books one session, or every occurrence of a recurring series (all or none). A series keeps the
     first occurrence's clinic-local wall time; one that would fall in a DST gap or overlap is refused."""
     require_patient(session, user, data.patient_id)
     require_object(session, user, "prescription_id", data.prescription_id)
     bookings = service.create_booking(session=session, data=data, actor_id=user.id, zone=zone)
-    return [service.booking_out(session=session, booking=b, zone=zone) for b in bookings]
+    session.commit()  # the robot daemon reads the bookings to plan them
+    return [_with_plan(request, service.booking_out(session=session, booking=b, zone=zone)) for b in bookings]
 
 
 @router.get("/sessions/{session_id}", response_model=ScheduledSessionOut)
-def get_session(session_id: IdPath, session: SessionDep, zone: ClinicZone) -> ScheduledSessionOut:
+def get_session(session_id: IdPath, session: SessionDep, zone: ClinicZone, request: Request) -> ScheduledSessionOut:
+    """The booking, with its plan's state: opening the session page has its plan built if it is not yet."""
     booking = service.get_booking(session=session, session_id=session_id)
-    return service.booking_out(session=session, booking=booking, zone=zone)
+    return _with_plan(request, service.booking_out(session=session, booking=booking, zone=zone))
 
 
 @router.patch(
     "/sessions/{session_id}", response_model=ScheduledSessionOut, responses={409: {"description": "Conflict"}}
 )
 def update_session(
-    session_id: IdPath, data: ScheduleUpdate, session: SessionDep, user: CurrentUser, zone: ClinicZone
+    session_id: IdPath,
+    data: ScheduleUpdate,
+    session: SessionDep,
+    user: CurrentUser,
+    zone: ClinicZone,
+    request: Request,
 ) -> ScheduledSessionOut:
     booking = service.update_booking(session=session, session_id=session_id, data=data, actor_id=user.id, zone=zone)
-    return service.booking_out(session=session, booking=booking, zone=zone)
+    session.commit()  # the robot daemon reads the moved booking to plan it
+    return _with_plan(request, service.booking_out(session=session, booking=booking, zone=zone))
+
+
+def _with_plan(request: Request, booking: ScheduledSessionOut) -> ScheduledSessionOut:
+    """The booking with its plan's state from this console's robot daemon (which queues the plan if it is
+    neither stored nor being built); without an answer, none."""
+    robot = request.app.state.robot
+    if robot is None or booking.robot != robot.robot or booking.status == "cancelled":
+        return booking
+    try:
+        state = robot.plan_status(booking.id)
+    except Exception as error:  # no daemon, or a slow one: the booking still answers
+        logger.info("plan state of session %d unknown: %s", booking.id, error)
+        return booking
+    return booking.model_copy(update={"plan": PlanStateOut(**state)} if state else {})
 
 
 @router.post("/series/{series_id}/cancel", response_model=list[ScheduledSessionOut])

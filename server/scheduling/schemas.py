@@ -122,6 +122,22 @@ class ScheduledSessionOut(ResponseModel):
     status: str
     series_id: int | None
     notes: str
+    plan: PlanStateOut | None = Field(
+        None, description="Its plan on this console's robot; null when no robot daemon answers or it is booked "
+        "on another robot (only the single-session answers carry it)."
+    )
+
+
+class PlanStateOut(ResponseModel):
+    """The booking's plan on its robot: built and checked ahead, so that Start plays it at once."""
+
+    state: Literal["planning", "ready", "refused", "stale"] = Field(
+        description="planning: being built (see progress); ready: checked, Start plays it; refused: the check "
+        "refused it (see reason); stale: the robot, its settings or the patient changed since, it is made again"
+    )
+    progress: float = Field(ge=0.0, le=1.0, description="Fraction built, 0–1.")
+    reason: str | None = Field(description="Why the check refused it: segment, time, limit and value.")
+    plan_id: str | None = Field(description="The stored plan's key (a hash of everything it is made from).")
 
 
 class WeekBookingOut(ScheduledSessionOut):

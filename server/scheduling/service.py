@@ -31,10 +31,10 @@ from server.patients.models import Patient
 from server.patients.service import join_care_team
 from server.prescriptions import service as prescriptions
 from server.prescriptions.models import PrescriptionVersion
+from server.robotd.models import SessionRun
 from server.scheduling import clinic_time
 from server.scheduling.models import CalendarToken, ScheduledSession, ScheduleSeries
 from server.scheduling.schemas import ScheduleCreate, ScheduledSessionOut, ScheduleUpdate, WeekOut
-from server.sessions.models import SessionRun
 from server.users.models import User
 
 

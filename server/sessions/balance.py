@@ -3,8 +3,12 @@
 `GET /patients/{id}/trends` returns every trend series of a patient in one request: per recorded run its date,
 outcome (faulted runs and falls marked) and the Prieto et al. (1996) sway measures of the net centre of pressure
 of both feet (`net_cop`: plate COPs shifted to the stance frame by the foot-plate offsets), computed on the COP
-low-pass filtered at 5 Hz like Prieto did (`core.posturography.filtered_sway_metrics`), over the longest stretch
-in which the patient loads the plates. Each series has one unit, so a chart can give it its own axis.
+low-pass filtered at 5 Hz like Prieto did (`core.posturography.filtered_sway_metrics`). They are taken over
+one stated window of each run: the longest stretch of the run in motion (running or paused, not the approach's
+wait before the start or the recording's tail after the end) in which the patient loads the plates. The window
+must last at least `MIN_WINDOW_S`, 20 s, the trial length of the clinical sensory organisation test: a run
+stopped after a few seconds has no sway measures (issue 22 §6). Each series has one unit, so a chart can give
+it its own axis.
 
 No normative band is given: the published ranges we know of were measured on a fixed force plate in quiet
 stance, not on moving platforms during training, and none could be checked offline. A band may only be added
@@ -35,17 +39,20 @@ from server.auth.dependencies import CurrentUser, current_user
 from server.db import SessionDep
 from server.errors import ConflictError, InvalidFieldError
 from server.patients.service import read_patient
+from server.realtime.telemetry import SupervisorState
+from server.robotd.models import SessionEvent, SessionRun
 from server.scheduling.models import ScheduledSession
 from server.sessions.logs import telemetry_columns
-from server.sessions.models import SessionEvent, SessionRun
 
 router = APIRouter(tags=["patients"], dependencies=[Depends(current_user), ObjectAccess])
 
 MIN_LOADED_SAMPLES = 3
 LOADED_PLATES_N = 50.0  # below this both plates together carry nobody: no COP to speak of
+MIN_WINDOW_S = 20.0  # the shortest window measured: one trial of the clinical sensory organisation test
+IN_MOTION = (SupervisorState.RUNNING, SupervisorState.PAUSED)
 MAX_TREND_RUNS = 500
 
-# Outcomes of a run (server/sessions/recorder.py) as the trend marks them.
+# Outcomes of a run (server/robotd/records.py) as the trend marks them.
 GOOD_OUTCOMES = ("completed", "stopped")
 # (key, label, unit, metric field, factor from SI); `falls` is counted from the run's events.
 TREND_SERIES = (
@@ -70,9 +77,13 @@ def foot_origins_m(twin: TwinRobot) -> np.ndarray:
     return feet - feet.mean(axis=0)
 
 
-def longest_loaded_stretch(forces: np.ndarray) -> slice:
-    """The longest run of samples in which the plates together carry at least `LOADED_PLATES_N`."""
-    loaded = np.concatenate([[0], (forces.sum(axis=1) >= LOADED_PLATES_N).astype(np.int8), [0]])
+def longest_loaded_stretch(forces: np.ndarray, within: np.ndarray | None = None) -> slice:
+    """The longest run of samples in which the plates together carry at least `LOADED_PLATES_N` (and, given
+    `within`, a mask of the samples that may count, only those)."""
+    usable = forces.sum(axis=1) >= LOADED_PLATES_N
+    if within is not None:
+        usable &= within
+    loaded = np.concatenate([[0], usable.astype(np.int8), [0]])
     edges = np.diff(loaded)
     starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     if not len(starts):
@@ -82,15 +93,22 @@ def longest_loaded_stretch(forces: np.ndarray) -> slice:
 
 
 def run_balance(columns: dict[str, np.ndarray], twin: TwinRobot) -> dict[str, float] | None:
-    """Prieto's sway measures of one run on the filtered net COP (m, s), or None when the plates were loaded
-    for fewer than 3 samples in a row."""
+    """Prieto's sway measures of one run on the filtered net COP (m, s) over its window (`window_from_s` and
+    `window_to_s`, seconds into the run), or None when the run in motion loaded the plates for less than
+    `MIN_WINDOW_S` in a row."""
     forces = np.asarray(columns["plate_force_z_n"], dtype=float)
-    stretch = longest_loaded_stretch(forces)
-    if stretch.stop - stretch.start < MIN_LOADED_SAMPLES:
+    in_motion = np.isin(np.asarray(columns["state"]), [int(state) for state in IN_MOTION])
+    stretch = longest_loaded_stretch(forces, within=in_motion)
+    time_s = np.asarray(columns["time_s"], dtype=float)[stretch]
+    if stretch.stop - stretch.start < MIN_LOADED_SAMPLES or time_s[-1] - time_s[0] < MIN_WINDOW_S:
         return None
     cop = net_cop(forces[stretch], np.asarray(columns["plate_cop_m"], dtype=float)[stretch], foot_origins_m(twin))
-    time_s = np.asarray(columns["time_s"], dtype=float)[stretch]
-    return filtered_sway_metrics(time_s, cop).to_dict()
+    into_run = np.asarray(columns["session_time_s"], dtype=float)[stretch]
+    return {
+        **filtered_sway_metrics(time_s, cop).to_dict(),
+        "window_from_s": float(into_run[0]),
+        "window_to_s": float(into_run[-1]),
+    }
 
 
 def run_status(outcome: str | None) -> str:
@@ -208,7 +226,9 @@ def balance_trends(
             "definitions": "Prieto TE, Myklebust JB, Hoffmann RG, Lovett EG, Myklebust BM (1996). Measures of "
             "postural steadiness: differences between healthy young and elderly adults. IEEE Trans Biomed Eng "
             "43(9):956-966",
-            "cop": "net centre of pressure of both plates in the stance frame, over the longest loaded stretch",
+            "cop": "net centre of pressure of both plates in the stance frame, over the longest loaded stretch of "
+            f"the run in motion, at least {MIN_WINDOW_S:g} s (shorter runs are not measured)",
+            "min_window_s": MIN_WINDOW_S,
             "filter": {
                 "type": "Butterworth low-pass, zero phase",
                 "order": COP_LOWPASS_ORDER,

@@ -17,10 +17,10 @@ from core.robot import TwinRobot
 from server.errors import ConflictError, InvalidFieldError
 from server.patients.models import Patient
 from server.prescriptions.models import PrescriptionVersion
+from server.robotd.models import SessionEvent, SessionRun, TelemetryChunk
+from server.robotd.records import decode_chunk
+from server.robotd.runs import get_run
 from server.scheduling.models import ScheduledSession
-from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
-from server.sessions.recorder import decode_chunk
-from server.sessions.service import get_run
 from server.settings import Settings
 
 MAX_RUNS_PER_BUNDLE = 200

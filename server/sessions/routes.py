@@ -52,14 +52,14 @@ from server.exports.jobs import ExportJob, ExportJobs, ExportResponse
 from server.exports.log import to_json
 from server.jsonable import to_jsonable
 from server.reviews.service import refuse_start_while_unacknowledged
-from server.robotd import estop
+from server.robotd import estop, runs
 from server.robotd.estop import NO_ROBOT_PROCESS
+from server.robotd.interfaces import RobotLink
+from server.robotd.models import SessionRun
 from server.robotd.status import COMMAND_STALE_S, DAEMON_STALE_S
 from server.scheduling.service import get_booking
-from server.sessions import logs, service
-from server.sessions.models import SessionRun
+from server.sessions import logs
 from server.sessions.schemas import EmergencyStopResult, SessionEventOut, SessionRunOut, StartCancelledOut
-from server.sessions.worker import RobotLink
 from server.users.models import User
 
 logger = logging.getLogger(__name__)
@@ -166,13 +166,13 @@ def _record_emergency_stop(
             except Exception:
                 logger.exception("the robot daemon did not take the emergency stop's record; the console keeps it")
         with database.session() as session:
-            service.record_emergency_stop(
+            runs.record_emergency_stop(
                 session=session,
                 user_id=user_id,
                 authenticated=user_id is not None,
                 credential=credential,
                 run_ids=[],
-                clock=service.NO_CLOCK,
+                clock=runs.NO_CLOCK,
             )
     except Exception:
         logger.exception("the emergency stop could not be audited")
@@ -194,7 +194,7 @@ ActingUserId = Annotated[int, Depends(acting_user_id)]
 def _run_out(request: Request, run_id: int) -> SessionRunOut:
     database: Database = request.app.state.database
     with database.session() as session:
-        return SessionRunOut.model_validate(service.get_run(session=session, run_id=run_id))
+        return SessionRunOut.model_validate(runs.get_run(session=session, run_id=run_id))
 
 
 # Starting or resuming motion needs the patient in the caller's care; pause and stop never ask (a stop is
@@ -219,7 +219,7 @@ def start_session(session_id: IdPath, request: Request, user_id: ActingUserId, r
     return _run_out(request, robot.start_session(session_id, user_id))
 
 
-def _control(command: service.RunCommand) -> Any:
+def _control(command: runs.RunCommand) -> Any:
     def answer(session_id: int, run: dict[str, Any] | None) -> SessionRunOut | StartCancelledOut:
         if run is None:  # a stop while the session's start was still loading cancelled that start
             return StartCancelledOut(
@@ -281,17 +281,17 @@ def reset_robot(user_id: ActingUserId, robot: RobotDep) -> dict[str, str]:
 
 @router.get("/sessions/{session_id}/runs", response_model=list[SessionRunOut])
 def list_runs(session_id: IdPath, session: SessionDep) -> list[SessionRunOut]:
-    return [SessionRunOut.model_validate(r) for r in service.runs_of_booking(session=session, session_id=session_id)]
+    return [SessionRunOut.model_validate(r) for r in runs.runs_of_booking(session=session, session_id=session_id)]
 
 
 @router.get("/runs/{run_id}", response_model=SessionRunOut)
 def get_run(run_id: IdPath, session: SessionDep) -> SessionRunOut:
-    return SessionRunOut.model_validate(service.get_run(session=session, run_id=run_id))
+    return SessionRunOut.model_validate(runs.get_run(session=session, run_id=run_id))
 
 
 @router.get("/runs/{run_id}/events", response_model=list[SessionEventOut])
 def list_events(run_id: IdPath, session: SessionDep) -> list[SessionEventOut]:
-    return [SessionEventOut.model_validate(e) for e in service.events_of_run(session=session, run_id=run_id)]
+    return [SessionEventOut.model_validate(e) for e in runs.events_of_run(session=session, run_id=run_id)]
 
 
 # --- export --------------------------------------------------------------------------------------

@@ -19,10 +19,10 @@ from server.errors import ConflictError, WorkerUnavailableError
 from server.jsonable import to_jsonable
 from server.patients.models import Patient
 from server.patients.service import read_patient
+from server.robotd.models import SessionEvent
+from server.robotd.runs import get_run
 from server.scheduling.models import ScheduledSession
 from server.sessions.logs import telemetry_columns
-from server.sessions.models import SessionEvent
-from server.sessions.service import get_run
 from server.viz.proxy import viewer_of
 from server.viz.view import LiveView, ReplayError
 

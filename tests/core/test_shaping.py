@@ -54,13 +54,6 @@ def test_a_filter_that_leaves_the_mode_exposed_is_refused() -> None:
         ShapingParameters(kind="bandpass")
 
 
-def test_streaming_equals_batch() -> None:
-    shaper = CommandShaper(ShapingParameters(), DT)
-    poses = np.random.default_rng(4).normal(size=(2000, 6)) * 0.01
-    streamed = np.array([shaper.step(pose).copy() for pose in poses])
-    assert np.max(np.abs(streamed - shaper.shape_batch(poses))) < 1e-12
-
-
 def test_parameters_round_trip_and_reject_unknown_keys() -> None:
     params = ShapingParameters(kind="notch", notch_quality=0.3)
     assert ShapingParameters.from_dict(params.to_dict()) == params

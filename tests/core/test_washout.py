@@ -1,5 +1,5 @@
-"""Classical washout against analytic responses, the tilt-coordination safety limits, and the
-agreement of the streaming and batch front ends (paper §4.1, Formulas 12–13)."""
+"""Classical washout against analytic responses, the tilt-coordination safety limits, populations and
+chunking (paper §4.1, Formulas 12–13)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from core.kinematics import euler_rate_matrices, rotation_matrices
 from core.physics import GRAVITY_M_S2
 from core.shaping import ParameterError
 from core.washout import (
-    StreamingWashout,
     WashoutParameters,
     baseline_parameters,
     body_rates,
@@ -105,26 +104,23 @@ def test_paper_section_5_tilt_step() -> None:
     assert np.all(np.abs(trajectory.pose[-1000:, 3:]) < 1e-3)
 
 
-def test_streaming_equals_batch_with_every_nonlinearity_active() -> None:
-    rng = np.random.default_rng(7)
-    count = 6000
-    time_s = np.arange(count) * DT
-    force = np.stack([4 * np.sin(1.3 * time_s), 6 * np.sign(np.sin(0.9 * time_s)), rng.normal(0, 1, count)], axis=1)
-    rates = np.stack([0.8 * np.sin(2.1 * time_s), rng.normal(0, 0.3, count), 1.5 * np.cos(0.7 * time_s)], axis=1)
-    params = WashoutParameters(tilt_break_rad_s=3.0, tilt_rate_limit_rad_s=0.05)
-    batch = washout_batch(params, DT, force, rates)
-    assert np.any(batch.input_limited) and np.any(batch.tilt_rate_limited)
-    washout = StreamingWashout(params, DT)
-    streamed = np.empty((count, 18))
-    limited = np.empty(count, dtype=bool)
-    for index in range(count):
-        streamed[index] = washout.step(force[index], rates[index])
-        limited[index] = washout.tilt_rate_limited
-    expected = np.concatenate([batch.pose, batch.velocity, batch.acceleration], axis=1)
-    assert np.max(np.abs(streamed - expected)) < 1e-9
-    assert np.array_equal(limited, batch.tilt_rate_limited)
-    washout.reset()
-    assert np.array_equal(washout.step(force[0], rates[0]), expected[0])
+def test_scaling_limit_clips_and_reports_exactly_the_limited_samples() -> None:
+    params = baseline_parameters()
+    force, rates = _signals(1.0)
+    force[100:200, 0] = 1.2 * params.specific_force_limit_m_s2
+    rates[300:350, 2] = -1.5 * params.angular_velocity_limit_rad_s
+    trajectory = washout_batch(params, DT, force, rates)
+    expected = np.zeros(len(force), dtype=bool)
+    expected[100:200] = expected[300:350] = True
+    assert np.array_equal(trajectory.input_limited, expected)
+    clipped = washout_batch(
+        params,
+        DT,
+        np.clip(force, -params.specific_force_limit_m_s2, params.specific_force_limit_m_s2),
+        np.clip(rates, -params.angular_velocity_limit_rad_s, params.angular_velocity_limit_rad_s),
+    )
+    assert np.array_equal(trajectory.pose, clipped.pose)
+    assert not np.any(clipped.input_limited)
 
 
 def test_stacked_population_design_equals_single_designs() -> None:
@@ -189,16 +185,21 @@ def test_parameters_round_trip_and_unknown_keys_are_refused() -> None:
 
 
 def test_bad_sample_periods_and_signals_are_refused() -> None:
-    with pytest.raises(ParameterError, match="sample_period_s"):
-        StreamingWashout(baseline_parameters(), 0.0)
+    with pytest.raises(ParameterError, match="sample_period_s") as error:
+        washout_batch(baseline_parameters(), 0.0, *_signals(0.01))
+    assert error.value.field == "sample_period_s" and error.value.value == 0.0 and error.value.limit
     with pytest.raises(ParameterError, match="tilt_break_rad_s"):
         washout_batch(WashoutParameters(tilt_break_rad_s=5.0), 0.1, *_signals(1.0))  # too close to Nyquist
     force, rates = _signals(0.01)
     force[3, 1] = np.inf
     with pytest.raises(ParameterError, match=r"specific_force_m_s2\[3, 1\]"):
         washout_batch(baseline_parameters(), DT, force, rates)
-    with pytest.raises(ParameterError, match="finite"):
-        StreamingWashout(baseline_parameters(), DT).step(np.array([0.0, np.nan, 0.0]), np.zeros(3))
+    force[3, 1] = 0.0
+    rates[7, 2] = np.nan
+    with pytest.raises(ParameterError, match="finite") as error:
+        washout_batch(baseline_parameters(), DT, force, rates)
+    value = error.value.value
+    assert error.value.field == "angular_velocity_rad_s[7, 2]" and isinstance(value, float) and math.isnan(value)
 
 
 def test_batch_result_does_not_depend_on_the_chunk_size(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -216,7 +217,7 @@ def test_batch_result_does_not_depend_on_the_chunk_size(monkeypatch: pytest.Monk
     assert np.array_equal(chunked.tilt_rate_limited, whole.tilt_rate_limited)
 
 
-def test_streaming_equals_batch_with_the_head_lever_arm_compensated() -> None:
+def test_head_lever_arm_compensation_changes_the_translational_channel_only() -> None:
     rng = np.random.default_rng(11)
     count = 5000
     time_s = np.arange(count) * DT
@@ -225,11 +226,6 @@ def test_streaming_equals_batch_with_the_head_lever_arm_compensated() -> None:
     params = WashoutParameters(tilt_break_rad_s=2.0, tilt_rate_limit_rad_s=0.08, head_height_m=1.6)
     batch = washout_batch(params, DT, force, rates)
     assert np.any(batch.tilt_rate_limited)
-    washout = StreamingWashout(params, DT)
-    streamed = np.array([washout.step(force[i], rates[i]).copy() for i in range(count)])
-    expected = np.concatenate([batch.pose, batch.velocity, batch.acceleration], axis=1)
-    assert np.max(np.abs(streamed - expected)) < 1e-8
-    # The compensation changes the translational channel only.
     plain = washout_batch(replace(params, head_height_m=0.0), DT, force, rates)
     assert np.array_equal(plain.pose[:, 3:], batch.pose[:, 3:]) and not np.allclose(
         plain.pose[:, :3], batch.pose[:, :3]

@@ -108,7 +108,7 @@ def console_service(tmp_path_factory: pytest.TempPathFactory, chromium_path: Pat
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait(10)
-        stop_robot_daemon(data_dir)  # serve leaves its daemon running, by design
+        stop_robot_daemon(data_dir)  # if serve was killed before it could stop its daemon
         log.close()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         (ARTIFACTS / "serve.log").write_text((data_dir / "serve.log").read_text())
@@ -183,7 +183,7 @@ def _seed_fall_run(database_url: str, booking: dict[str, Any]) -> int:
 
     from server.db import Database, create_database_engine, load_models
     from server.prescriptions.models import PrescriptionVersion
-    from server.sessions.models import SessionEvent, SessionRun
+    from server.robotd.models import SessionEvent, SessionRun
 
     load_models()
     engine = create_database_engine(database_url)
@@ -214,6 +214,8 @@ def _seed_fall_run(database_url: str, booking: dict[str, Any]) -> int:
 @pytest.fixture(scope="session")
 def browser(chromium_path: Path) -> Iterator[Any]:
     sync_api = pytest.importorskip("playwright.sync_api")
+    # expect()'s own default is 5 s: a preview or a save on a loaded 2-core machine takes longer.
+    sync_api.expect.set_options(timeout=20_000)
     with sync_api.sync_playwright() as playwright:
         launched = playwright.chromium.launch(executable_path=str(chromium_path), headless=True, args=CHROMIUM_ARGS)
         yield launched
@@ -300,3 +302,13 @@ def turn_engineering_on(page: Any) -> None:
 
     page.evaluate("() => { const box = document.getElementById('engineering-switch'); if (!box.checked) box.click(); }")
     expect(page.get_by_label("Engineering details")).to_be_checked()
+
+
+def acknowledge_earlier_stop(clinic: dict[str, Any]) -> None:
+    """An earlier browser test's run on the shared robot may have ended with a stop that waits for an
+    acknowledgement, which keeps Start disabled: acknowledge it, as its therapist would."""
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    with httpx.Client(base_url=clinic["api"], headers=headers, timeout=60) as api:
+        leftover = api.get("/reviews/pending", params={"robot": "twin-1"}).json()
+        if leftover is not None:
+            api.post(f"/runs/{leftover['run_id']}/acknowledge", json={"note": "e2e: an earlier test's stop"})

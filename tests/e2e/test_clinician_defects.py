@@ -207,7 +207,7 @@ def _seed_running_run(database_url: str, booking: dict[str, Any], start_tick_tim
 
     from server.db import Database, create_database_engine, load_models
     from server.prescriptions.models import PrescriptionVersion
-    from server.sessions.models import SessionEvent, SessionRun
+    from server.robotd.models import SessionEvent, SessionRun
 
     load_models()
     engine = create_database_engine(database_url)
@@ -229,7 +229,7 @@ def _seed_running_run(database_url: str, booking: dict[str, Any], start_tick_tim
 
 def _end_run(database_url: str, run_id: int) -> None:
     from server.db import Database, create_database_engine, load_models
-    from server.sessions.models import SessionRun
+    from server.robotd.models import SessionRun
 
     load_models()
     engine = create_database_engine(database_url)

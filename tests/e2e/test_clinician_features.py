@@ -12,6 +12,7 @@ from typing import Any
 
 import pytest
 
+from benchmarks.fault_harness import wait_for
 from tests.e2e.conftest import ARTIFACTS, THERAPIST, field_error, fill_patient, turn_engineering_on
 from tests.server.test_viz_proxy import preset_at, viser_messages
 
@@ -169,13 +170,19 @@ def test_3d_view_shows_presets_without_viser_developer_panel_or_notice(console: 
 
 
 def _viz_status(clinic: dict[str, Any], page: Any) -> dict[str, Any]:
-    """`GET /viz` as this browser sees it (its cookie: `controls_visible` is its own switch)."""
-    for _ in range(20):
-        status: dict[str, Any] = page.request.get(f"{clinic['api']}/viz").json()
-        if status.get("camera_preset") == "left":
-            break
-        time.sleep(0.25)
-    return status
+    """`GET /viz` as this browser sees it (its cookie: `controls_visible` is its own switch), once the view
+    has taken the left preset."""
+    seen: list[dict[str, Any]] = []
+
+    def left() -> bool:
+        seen.append(page.request.get(f"{clinic['api']}/viz").json())
+        return seen[-1].get("camera_preset") == "left"
+
+    try:
+        wait_for(left, 60.0, "the left camera preset", 0.25)
+    except AssertionError as error:
+        raise AssertionError(f"{error}: {seen[-1]}") from None
+    return seen[-1]
 
 
 def test_the_engineering_switch_of_one_browser_leaves_the_other_browsers_3d_view(

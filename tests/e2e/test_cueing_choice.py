@@ -4,6 +4,7 @@ the patient's head for the algorithm chosen."""
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import httpx
@@ -29,14 +30,18 @@ def test_the_editor_offers_optimal_cueing_previews_it_and_stores_it(console: Any
     expect(choice.locator("option")).to_have_text([CLASSICAL, OPTIMAL])
 
     # A preview with the default, then the choice changed: the preview is computed again for optimal.
-    with page.expect_request("**/api/v1/prescriptions/preview") as first:
+    with page.expect_request("**/api/v1/prescriptions/previews") as first:
         page.get_by_role("button", name="Preview motion").click()
     assert first.value.post_data_json["cueing"] == "classical"
     expect(page.locator(".verdict")).to_contain_text("accepts", timeout=90_000)
     expect(page.locator("#preview-cueing")).to_contain_text(CLASSICAL)
-    with page.expect_request("**/api/v1/prescriptions/preview") as second:
+    with page.expect_request("**/api/v1/prescriptions/previews") as second:
         choice.select_option("optimal")
     assert second.value.post_data_json["cueing"] == "optimal"
+    # A job of the planner (issue 21, defect 6): the status line shows how far it is while it plans.
+    status = page.locator('p.panel[role="status"]')
+    expect(status).to_contain_text(re.compile(r"Computing the preview \(Optimal.*\d+ %"))
+    expect(status.locator("progress")).to_have_count(1)
     expect(page.locator("#preview-cueing")).to_contain_text(OPTIMAL, timeout=90_000)
     expect(page.locator(".verdict")).to_contain_text("accepts")
     perceived = f'.charts .chart[aria-label^="Perceived acceleration at the head"][aria-label*="{OPTIMAL}"]'

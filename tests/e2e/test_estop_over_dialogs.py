@@ -12,6 +12,8 @@ from typing import Any
 import httpx
 import pytest
 
+from tests.e2e.conftest import acknowledge_earlier_stop
+
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 playwright_api = pytest.importorskip("playwright.sync_api")
@@ -39,6 +41,7 @@ def _open_booking(page: Any, clinic: dict[str, Any], go: Callable[[str], Any]) -
 
 
 def _open_start(page: Any, clinic: dict[str, Any], go: Callable[[str], Any]) -> None:
+    acknowledge_earlier_stop(clinic)
     go(f"#/session/{clinic['booking']['id']}")
     # The console wires its buttons once the page's data has loaded: click until the dialog answers.
     deadline = time.monotonic() + 60.0

@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.e2e.conftest import ARTIFACTS
+from tests.e2e.conftest import ARTIFACTS, acknowledge_earlier_stop
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -24,6 +24,18 @@ def _click(locator: Any) -> None:
     """A DOM click: with the 3D view rendering in software on a loaded machine, Playwright's pointer actions
     wait for animation frames that come too seldom (tests/e2e/conftest.py, turn_engineering_on)."""
     locator.evaluate("element => element.click()")
+
+
+def _book(clinic: dict[str, Any], hours_after_the_clinic_booking: int) -> dict[str, Any]:
+    """A booking of the clinic's prescription on twin-1, on a robot with no earlier stop to acknowledge."""
+    acknowledge_earlier_stop(clinic)  # a stop another browser test left on this robot
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    start = dt.datetime.fromisoformat(clinic["booking"]["start"]) + dt.timedelta(hours=hours_after_the_clinic_booking)
+    with httpx.Client(base_url=clinic["api"], headers=headers, timeout=60) as api:
+        return dict(api.post("/sessions", json={
+            "patient_id": clinic["patient"]["id"], "prescription_id": clinic["prescription"]["id"],
+            "robot": "twin-1", "start": start.isoformat(), "duration_s": 1800,
+        }).json()[0])  # fmt: skip
 
 
 def _confirm_checklist(page: Any) -> None:
@@ -39,18 +51,7 @@ def _confirm_checklist(page: Any) -> None:
 def test_after_an_estop_and_a_reset_the_stop_is_acknowledged_before_the_next_start(
     console: Any, clinic: dict[str, Any]
 ) -> None:
-    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
-    with httpx.Client(base_url=clinic["api"], headers=headers, timeout=60) as api:
-        # A stop another browser test left on this robot.
-        leftover = api.get("/reviews/pending", params={"robot": "twin-1"}).json()
-        if leftover is not None:
-            api.post(f"/runs/{leftover['run_id']}/acknowledge", json={"note": "e2e: earlier test"})
-        start = dt.datetime.fromisoformat(clinic["booking"]["start"]) + dt.timedelta(hours=5)
-        booking = api.post("/sessions", json={
-            "patient_id": clinic["patient"]["id"], "prescription_id": clinic["prescription"]["id"],
-            "robot": "twin-1", "start": start.isoformat(), "duration_s": 1800,
-        }).json()[0]  # fmt: skip
-
+    booking = _book(clinic, hours_after_the_clinic_booking=5)
     session = console(viewport=VIEWPORT)
     # Without the 3D view: its software WebGL starves this page's main thread on a loaded machine, and it is
     # not what this test is about (the page keeps its place: "3D view unavailable").
@@ -99,4 +100,36 @@ def test_after_an_estop_and_a_reset_the_stop_is_acknowledged_before_the_next_sta
     _confirm_checklist(page)
     expect(next_step).to_have_count(0, timeout=15_000)
     expect(start_button).to_be_enabled(timeout=15_000)
+    assert not session.errors, session.errors
+
+
+def test_start_is_enabled_only_once_a_click_opens_the_checklist(console: Any, clinic: dict[str, Any]) -> None:
+    """CI failure, 2026-12-07: the page built an enabled Start, then waited for the 3D view's status before it
+    wired the button; telemetry said READY meanwhile, and a click did nothing. The 3D view's status is held here
+    until Start has been looked at."""
+    booking = _book(clinic, hours_after_the_clinic_booking=6)
+    session = console(viewport=VIEWPORT)
+    session.context.route(re.compile(r"/api/v1/viz/view/"), lambda route: route.abort())
+    held: list[Any] = []
+    viz_status = re.compile(r"/api/v1/viz$")
+    session.context.route(viz_status, lambda route: held.append(route))
+    session.page.set_default_timeout(60_000)
+    page = session.login()
+    session.go(f"#/session/{booking['id']}")
+    start_button = page.locator("#start-button")
+    # The page is built and the robot is READY (telemetry arrives), while the 3D view's status is still held.
+    expect(page.locator("#robot-status")).to_contain_text("READY", timeout=30_000)
+    expect(page.locator("#plan-state")).to_contain_text("ready", timeout=60_000)
+    expect(start_button).to_be_disabled()
+    assert held, "the 3D view's status was not asked for"
+    session.context.unroute(viz_status)
+    for route in held:
+        route.continue_()
+    expect(start_button).to_be_enabled(timeout=30_000)
+    _click(start_button)
+    dialog = page.locator("#confirm-dialog")
+    expect(dialog).to_be_visible()
+    _click(dialog.get_by_role("button", name="Cancel"))
+    expect(dialog).to_be_hidden()
+    expect(page.locator("#run-state")).not_to_have_attribute("data-state", "running")
     assert not session.errors, session.errors

@@ -19,11 +19,13 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import Engine, create_engine, text
 
-from benchmarks.fault_harness import Console
+from benchmarks.fault_harness import EVENT_TIMEOUT_S, Console, wait_for
 from server.app import create_app
 from server.auth.models import AuthSession
 from server.auth.security import TokenClaims, TokenSigner, hash_password, new_session_id
 from server.db import Database, create_database_engine, upgrade_database
+from server.realtime.supervisor import STOP_RAMP_RUNNING, TransitionRefused
+from server.realtime.telemetry import TELEMETRY_DTYPE, SupervisorState
 from server.settings import Settings
 from server.users.models import User
 
@@ -32,28 +34,12 @@ TEST_SECRET = "test-secret-key-of-sufficient-length"
 ADMIN_PASSWORD = "admin-password-1"
 THERAPIST_PASSWORD = "therapist-password-1"
 
-try:
-    from server.realtime.telemetry import TELEMETRY_DTYPE
-except ImportError:  # the worker package is written in parallel; the agreed field names suffice here
-    TELEMETRY_DTYPE = np.dtype(
-        [
-            ("tick", np.int64),
-            ("time_s", np.float64),
-            ("utc_s", np.float64),
-            ("state", np.uint8),
-            ("cue_specific_force_m_s2", np.float64, (3,)),
-            ("cue_angular_velocity_rad_s", np.float64, (3,)),
-            ("stance_pose", np.float64, (6,)),
-            ("slider_command_m", np.float64, (12,)),
-            ("slider_position_m", np.float64, (12,)),
-            ("drive_force_n", np.float64, (12,)),
-            ("plate_force_z_n", np.float64, (2,)),
-            ("plate_cop_m", np.float64, (2, 2)),
-            ("harness_load_n", np.float64),
-            ("tick_compute_us", np.float32),
-            ("lateness_us", np.float32),
-        ]
-    )
+
+def run_columns(time_s: np.ndarray, forces: np.ndarray, cops: np.ndarray, state: np.ndarray | None = None) -> dict:
+    """Telemetry columns for a run's balance measures: a run in motion throughout (unless `state` says otherwise)."""
+    running = np.full(len(time_s), int(SupervisorState.RUNNING), dtype=np.uint8)
+    return {"time_s": time_s, "session_time_s": time_s - time_s[0], "state": running if state is None else state,
+            "plate_force_z_n": forces, "plate_cop_m": cops}  # fmt: skip
 
 
 @dataclass
@@ -226,6 +212,8 @@ class FakeWorker:
     estop_request_utc_s: float | None = None
     load_gate: threading.Event | None = None  # when set by a test, a load waits for it (a long check)
     loading: threading.Event = field(default_factory=threading.Event)  # a load is under way
+    plan_index: int = 100  # the plan sample "played": a pause is checked ahead of it
+    braking_resets: int = 0  # resets refused as the worker refuses them while an emergency stop's ramp runs
 
     def _command(self, name: str, *args: Any) -> None:
         if self.refuse_with is not None and name not in ("emergency_stop", "latest_state"):
@@ -236,22 +224,20 @@ class FakeWorker:
     def start(self) -> None: ...
     def shutdown(self) -> None: ...
 
-    def load_prescription(
-        self, prescription: dict[str, Any], patient: dict[str, Any] | None, estop_generation: int | None = None
-    ) -> None:
+    def load_plan(self, plan: Any, report: dict[str, Any], estop_generation: int | None = None) -> None:
         self.loading.set()
         if self.load_gate is not None:
             assert self.load_gate.wait(60.0), "the test never ended the load"
-        self._command("load_prescription", prescription, patient)
+        self._command("load_plan", plan, report)
 
-    def start_motion(self, estop_generation: int | None = None) -> None:
-        self._command("start_motion")
+    def start_motion(self, approach: Any, estop_generation: int | None = None) -> None:
+        self._command("start_motion", approach)
 
-    def pause(self) -> None:
-        self._command("pause")
+    def pause(self, transition: Any) -> None:
+        self._command("pause", transition)
 
-    def resume(self) -> None:
-        self._command("resume")
+    def resume(self, transition: Any) -> None:
+        self._command("resume", transition)
 
     def stop(self) -> None:
         self._command("stop")
@@ -265,10 +251,19 @@ class FakeWorker:
         return self.estop_requests, self.estop_request_utc_s
 
     def reset(self) -> None:
+        if self.braking_resets > 0:
+            self.braking_resets -= 1
+            raise TransitionRefused("reset", SupervisorState.ESTOP, STOP_RAMP_RUNNING)
         self._command("reset")
 
     def latest_state(self) -> dict[str, Any]:
-        return {"state": "running", "tick": self.tick, "time_s": self.tick / self.sample_rate_hz}
+        return {
+            "state": "running",
+            "tick": self.tick,
+            "time_s": self.tick / self.sample_rate_hz,
+            "measured_stance_pose": [0.0] * 6,  # standing at neutral
+            "plan_index": self.plan_index,
+        }
 
     def command_names(self) -> list[str]:
         with self._lock:
@@ -327,14 +322,38 @@ def robot_client(settings: Settings, database: Database, fake_worker: FakeWorker
         yield test_client
 
 
-def wait_until(condition: Callable[[], Any], timeout_s: float = 5.0) -> Any:
+def wait_until(condition: Callable[[], Any], timeout_s: float = 5.0, period_s: float = 0.01) -> Any:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         value = condition()
         if value:
             return value
-        time.sleep(0.01)
+        time.sleep(period_s)
     raise AssertionError("condition not met in time")
+
+
+PREVIEW_WAIT_S = 120.0  # a short preview takes a second; the preview process's start-up many at load 20
+
+
+def finished_preview(
+    get: Callable[[str], Any], started: Any, timeout_s: float = PREVIEW_WAIT_S, seen: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
+    """The preview job that `started` (the answer of `POST /prescriptions/previews`) names, once it has ended,
+    polled at its Location through `get` (which takes the path under /api/v1); `seen` collects every answer."""
+    assert started.status_code == 202, started.text
+    location = started.headers["location"]
+    assert location == f"/api/v1/prescriptions/previews/{started.json()['preview_id']}", location
+
+    def ended() -> dict[str, Any] | None:
+        answer = get(location.removeprefix("/api/v1"))
+        assert answer.status_code == 200, answer.text
+        job: dict[str, Any] = answer.json()
+        if seen is not None:
+            seen.append(job)
+        return job if job["state"] != "planning" else None
+
+    job: dict[str, Any] = wait_until(ended, timeout_s, period_s=0.02)
+    return job
 
 
 # --- records most tests need ------------------------------------------------------------------------
@@ -425,12 +444,56 @@ def console(tmp_path: Path) -> Iterator[Console]:
         instance.stop()
 
 
+@pytest.fixture(scope="module")
+def shared_console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
+    """One real console for a module's tests that leave its processes whole (none killed or left stopped):
+    starting one costs seconds to minutes on the loaded test machine. Take it through `resting_console`."""
+    instance = Console(tmp_path_factory.mktemp("shared") / "console")
+    instance.start()
+    try:
+        yield instance
+    finally:
+        instance.stop()
+
+
+@pytest.fixture
+def resting_console(shared_console: Console) -> Console:
+    """The module's shared console with its robot at rest, as a fresh one starts: what an earlier test left
+    running is stopped, a latched stop reset and every stop that moved the patient acknowledged."""
+    bring_to_rest(shared_console)
+    return shared_console
+
+
+def bring_to_rest(console: Console) -> None:
+    def open_runs() -> list[int]:
+        with console.database() as connection:
+            query = text("SELECT scheduled_session_id FROM session_runs WHERE state != 'ended'")
+            return list(connection.execute(query).scalars())
+
+    for session_id in open_runs():
+        console.post(f"/sessions/{session_id}/stop")
+
+    def at_rest() -> bool:
+        state = console.get("/robot/state")
+        if state.status_code != 200:
+            return False
+        robot = state.json()
+        if robot["state"] in ("idle", "ready") and not robot["estop_latched"]:
+            return not open_runs()
+        if robot["state"] in ("stopped", "estop", "fault"):
+            console.post("/robot/reset")  # refused while a stop ramp still runs: asked again at the next look
+        return False
+
+    wait_for(at_rest, EVENT_TIMEOUT_S, "the shared console's robot to come to rest", 0.1)
+    wait_for(lambda: console.acknowledge_pending() is None, EVENT_TIMEOUT_S, "every stop acknowledged", 0.1)
+
+
 def fallen_run(database: Database, booking: dict[str, Any]) -> int:
     """A run that a fall ended, as the recorder writes it: what the run-review bodies act on."""
     from sqlalchemy import select
 
     from server.prescriptions.models import PrescriptionVersion
-    from server.sessions.models import SessionRun
+    from server.robotd.models import SessionRun
 
     with database.session() as session:
         version_id = session.scalar(

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from server.db import Database
-from server.sessions.recorder import terminal_outcome_of
+from server.robotd.records import terminal_outcome_of
 from tests.server.conftest import PATIENT, Booked, FakeWorker, Seed, booked_session, wait_until
 
 
@@ -49,13 +49,18 @@ def test_start_loads_the_booked_version_and_anthropometrics_only(
     booked = booked_session(robot_client, seed.headers())
     run = start(robot_client, seed, booked)
     assert run["state"] == "running" and run["started_by_id"] == seed.therapist_id
-    (name, (prescription, patient)), (second, _) = fake_worker.calls
-    assert (name, second) == ("load_prescription", "start_motion")
+    (name, (plan, report)), (second, (approach,)) = fake_worker.calls
+    assert (name, second) == ("load_plan", "start_motion")
     version = robot_client.get(
         f"/api/v1/prescriptions/{booked.prescription_id}/versions/1", headers=seed.headers()
     ).json()
-    assert prescription == version["content"] and run["prescription_version_id"] == version["id"]
-    assert patient == {"body_mass_kg": 60.0, "height_m": 1.65}
+    segments = version["content"]["segments"]
+    assert [dict(s.cue_spec) for s in plan.segments] == [s["cue"] for s in segments]
+    assert [s.duration_s for s in plan.segments] == [s["duration_s"] for s in segments]
+    assert run["prescription_version_id"] == version["id"]
+    assert (plan.patient.body_mass_kg, plan.patient.height_m) == (60.0, 1.65)
+    # The worker gets the checked plan and the checked approach from where the platform stands.
+    assert report["samples"] == plan.played.samples and approach.kind == "approach"
     assert [e["kind"] for e in events(robot_client, seed, run["id"])] == ["start"]
 
 
@@ -70,7 +75,7 @@ def test_pause_resume_stop_follow_the_run_state(robot_client: TestClient, seed: 
     stopped = robot_client.post(f"{base}/stop", headers=seed.headers(role="admin")).json()
     assert (stopped["state"], stopped["outcome"], stopped["stopped_by_id"]) == ("ended", "stopped", seed.admin_id)
     assert stopped["ended_at"] is not None
-    assert fake_worker.command_names() == ["load_prescription", "start_motion", "pause", "resume", "stop"]
+    assert fake_worker.command_names() == ["load_plan", "start_motion", "pause", "resume", "stop"]
     kinds = ["start", "pause", "resume", "stop", "run_ended"]  # the robot daemon records every end as run_ended
     assert [e["kind"] for e in events(robot_client, seed, run["id"])] == kinds
     motion = robot_client.get(
@@ -92,11 +97,16 @@ def test_a_refused_prescription_is_a_422_and_leaves_no_run(
 ) -> None:
     prescription = pytest.importorskip("core.plan.check")
     booked = booked_session(robot_client, seed.headers())
-    fake_worker.refuse_with = prescription.PrescriptionRejected(0, 2.5, "tilt_max_rad", 0.31, "tilt over the limit")
+    breaches = {"kinematic_breaches": {"tilt": [[2.5, 2.75]]}, "singularity": {"worst_condition": 12.0}}
+    fake_worker.refuse_with = prescription.PrescriptionRejected(
+        0, 2.5, "tilt_max_rad", 0.31, "tilt over the limit", breaches
+    )
     response = robot_client.post(f"/api/v1/sessions/{booked.session_id}/start", headers=seed.headers())
     assert response.status_code == 422
     detail = response.json()["detail"][0]
     assert detail["loc"] == ["body", "segments[0]"] and "tilt_max_rad" in detail["msg"]
+    # Every breach the check found, not only the first (issue 21, defect 8).
+    assert detail["ctx"]["details"] == {"segment": 0, "time_s": 2.5, **breaches}
     assert runs(robot_client, seed, booked) == []
 
 
@@ -309,7 +319,7 @@ def test_a_completed_prescription_completes_the_booking(
 def test_reset_of_a_robot_with_nothing_latched_is_a_409_not_a_500(
     robot_client: TestClient, seed: Seed, fake_worker: FakeWorker
 ) -> None:
-    from server.realtime.client import CommandRefused
+    from server.messages import CommandRefused
 
     fake_worker.refuse_with = CommandRefused("reset: refused in state idle")
     response = robot_client.post("/api/v1/robot/reset", headers=seed.headers())

@@ -12,9 +12,9 @@ from fastapi.testclient import TestClient
 from core.patient import PatientParameters, simulate_trial
 from core.posturography import filtered_sway_metrics, lowpass_cop, sway_metrics
 from core.robot import default_twin
-from server.realtime.telemetry import TELEMETRY_DTYPE
+from server.realtime.telemetry import TELEMETRY_DTYPE, SupervisorState
 from server.sessions.balance import run_balance
-from tests.server.conftest import FakeWorker, Seed, booked_session, wait_until
+from tests.server.conftest import FakeWorker, Seed, booked_session, run_columns, wait_until
 
 TWIN = default_twin()
 PERIOD_S = 0.001
@@ -30,17 +30,38 @@ def quiet_stance(seed: int, cop_noise_m: float = 0.001) -> tuple[np.ndarray, np.
 def test_mean_cop_velocity_of_quiet_stance_is_sway_not_sensor_noise() -> None:
     """Defect 6: path length on raw 1 kHz COP read 1.6-2.0 m/s for standing patients."""
     time_s, forces, cops = quiet_stance(3)
-    metrics = run_balance({"time_s": time_s, "plate_force_z_n": forces, "plate_cop_m": cops}, TWIN)
+    metrics = run_balance(run_columns(time_s, forces, cops), TWIN)
     assert metrics is not None
     assert 0.001 < metrics["mean_velocity_m_s"] < 0.1, metrics["mean_velocity_m_s"]
     # The filter takes out the plate's noise, not the sway: the noise-free plate gives about the same figure.
     _, _, clean = quiet_stance(3, cop_noise_m=0.0)
-    noise_free = run_balance({"time_s": time_s, "plate_force_z_n": forces, "plate_cop_m": clean}, TWIN)
+    noise_free = run_balance(run_columns(time_s, forces, clean), TWIN)
     assert noise_free is not None
     assert metrics["mean_velocity_m_s"] == pytest.approx(noise_free["mean_velocity_m_s"], rel=0.35)
     assert metrics["rms_distance_m"] == pytest.approx(noise_free["rms_distance_m"], rel=0.1)
     raw = sway_metrics(time_s, cops[:, 0])
     assert raw.mean_velocity_m_s > 10 * metrics["mean_velocity_m_s"]  # what the unfiltered path length said
+
+
+def test_a_run_stopped_after_a_few_seconds_has_no_sway_measures() -> None:
+    """Issue 22 §6: sway measures were computed and trended for runs stopped after 2–4 s."""
+    time_s, forces, cops = quiet_stance(4)
+    short = slice(0, 4000)
+    assert run_balance(run_columns(time_s[short], forces[short], cops[short]), TWIN) is None
+    assert run_balance(run_columns(time_s, forces, cops), TWIN) is not None  # 30 s: measured
+
+
+def test_the_window_is_the_run_in_motion_and_says_where_it_is() -> None:
+    """Issue 22 §6: "Duration analysed" read 75.9 s for a 69.1 s run: the recording's tail after the end (and the
+    wait before the start) counted, though the plates still carried the patient."""
+    time_s, forces, cops = quiet_stance(5)
+    state = np.full(len(time_s), int(SupervisorState.RUNNING), dtype=np.uint8)
+    state[:2000] = int(SupervisorState.READY)  # before the start
+    state[26000:] = int(SupervisorState.STOPPED)  # the tail after the end
+    metrics = run_balance(run_columns(time_s, forces, cops, state), TWIN)
+    assert metrics is not None
+    assert metrics["window_from_s"] == pytest.approx(2.0) and metrics["window_to_s"] == pytest.approx(25.999)
+    assert metrics["duration_s"] == pytest.approx(23.999)
 
 
 def test_lowpass_keeps_slow_sway_and_resamples_a_late_tick() -> None:
@@ -64,6 +85,7 @@ def _record(fake_worker: FakeWorker, forces: np.ndarray, cops: np.ndarray) -> No
         records["tick"] = ticks
         records["time_s"] = ticks / fake_worker.sample_rate_hz
         records["session_time_s"] = (ticks - ticks[0]) / fake_worker.sample_rate_hz
+        records["state"] = int(SupervisorState.RUNNING)
         records["plate_force_z_n"] = forces
         records["plate_cop_m"] = cops
         fake_worker.tick += samples
@@ -78,9 +100,9 @@ def _run(
     assert response.status_code == 200, response.text
     run = response.json()
     _, forces, cops = quiet_stance(cop_seed)
-    _record(fake_worker, forces[:8000], cops[:8000])
+    _record(fake_worker, forces[:22000], cops[:22000])  # 22 s: longer than the shortest window measured
     url = f"/api/v1/runs/{run['id']}"
-    wait_until(lambda: client.get(url, headers=seed.headers()).json()["sample_count"] == 8000)
+    wait_until(lambda: client.get(url, headers=seed.headers()).json()["sample_count"] == 22000)
     if stop_reason == "fall":
         fake_worker.emit_event("fall", onset_s=3.0, detected_s=3.2, session_time_s=3.2)
     fake_worker.emit_event("controlled_stop", reason=stop_reason)

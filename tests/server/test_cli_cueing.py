@@ -17,6 +17,7 @@ CONTRACT = {
     "duration_s",
     "planning_wall_s",
     "perceived_specific_force_error_rms_m_s2",
+    "perceived_specific_force_error_rms_raw_m_s2",
     "perceived_angular_velocity_error_rms_rad_s",
     "peak_tilt_rate_rad_s",
     "max_condition_number",
@@ -73,3 +74,42 @@ def test_compare_json_shape_and_plot(tmp_path: Path) -> None:
     assert row["name"] == "sine-sway" and set(row["classical"]) == set(row["optimal"]) == CONTRACT
     assert Path(data["plots"][0]).stat().st_size > 1000
     assert runner.invoke(app, ["cueing", "compare", "--scenario", "loop"]).exit_code == 2
+
+
+SQUARE = {"segments": [{"cue": {"kind": "square_wave", "axis": "x", "amplitude_m_s2": 2.0, "period_s": 2.0},
+                        "duration_s": 6.0}]}  # fmt: skip
+
+
+def test_plan_judges_against_the_cue_as_written_beside_the_cue_as_played(tmp_path: Path) -> None:
+    """Issue 21, defect 5: the raw figure compares what the head feels with the prescribed cue as written
+    (no soft start, nothing after the segment's duration), perceived through the same otolith model."""
+    import numpy as np
+
+    from core.cues import cue_from_spec
+    from core.perception import DEFAULT_HEAD_HEIGHT_M, head_specific_force
+    from core.plan.build import plan_prescription
+    from core.plan.timeline import prescription_timeline
+    from core.robot import default_twin
+    from core.vestibular import VestibularModel
+
+    path = tmp_path / "square.json"
+    path.write_text(json.dumps(SQUARE))
+    outcome = runner.invoke(app, ["cueing", "plan", str(path), "--json"])
+    assert outcome.exit_code == 0, outcome.output
+    result = json.loads(outcome.stdout)
+    plan = plan_prescription(SQUARE, default_twin())
+    timeline = prescription_timeline(plan)
+    dt = plan.sample_period_s
+    segment = plan.segments[0]
+    raw = np.zeros((len(timeline["poses"]), 3))
+    written, _ = cue_from_spec(segment.cue_spec, dt, segment.seed).generate(segment.duration_s)
+    raw[: len(written)] = written
+    delivered = head_specific_force(
+        timeline["poses"].T, timeline["velocity"].T, timeline["acceleration"].T, DEFAULT_HEAD_HEIGHT_M
+    ).T
+    model = VestibularModel(sample_period_s=dt)
+    error = model.perceive_specific_force(delivered) - model.perceive_specific_force(raw)
+    expected = float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
+    assert result["perceived_specific_force_error_rms_raw_m_s2"] == pytest.approx(expected, rel=1e-9)
+    # The soft start alone makes the square wave's first half-period softer than written.
+    assert result["perceived_specific_force_error_rms_raw_m_s2"] > result["perceived_specific_force_error_rms_m_s2"]

@@ -11,6 +11,7 @@ from core.plan.check import PrescriptionRejected
 from core.plan.limits import LimitCode
 from core.robot import TwinRobot, named_twin, symmetric_placements
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
+from server.realtime.pipeline import start_along_checked_approach
 from server.realtime.telemetry import StopReason, SupervisorState
 from tests.server.test_supervisor import Harness
 
@@ -59,7 +60,7 @@ def test_the_tick_kernel_and_the_batch_clearance_agree_along_a_sway() -> None:
 def test_a_collision_during_a_session_is_a_controlled_stop_naming_the_parts() -> None:
     harness = Harness(NEAR_MISS)
     harness.load(SWAY_STEP, duration_s=6.0)  # loaded unchecked, on purpose
-    harness.pipeline.start()
+    start_along_checked_approach(harness.pipeline)
     harness.run(20_000, until=lambda: harness.state is SupervisorState.STOPPED)
     assert harness.state is SupervisorState.STOPPED
     assert harness.pipeline.supervisor.stop_reason is StopReason.LIMIT

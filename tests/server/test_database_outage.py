@@ -25,16 +25,20 @@ from fastapi.testclient import TestClient
 from sqlalchemy import Engine, make_url, select
 
 from benchmarks.fault_harness import in_background
+from core.robot import default_twin
 from server.app import create_app
 from server.auth.safe_commands import TOKEN_ONLY, VERIFIED
 from server.db import Database, create_database_engine, upgrade_database
+from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.daemon import RobotDaemon
 from server.robotd.journal import RunJournal, read_decisions
 from server.robotd.link import LocalLink
+from server.robotd.models import SessionEvent, SessionRun, TelemetryChunk
+from server.robotd.plan_store import PlanStore
+from server.robotd.planner import InlinePlanner
+from server.robotd.records import decode_chunk
 from server.robotd.recovery import recover_open_runs
-from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
-from server.sessions.recorder import decode_chunk
 from server.settings import Settings
 from tests.server.conftest import (
     ADMIN_PASSWORD,
@@ -130,11 +134,15 @@ def sqlite_write_lock(database_file: Path) -> Iterator[None]:
 def console_on(database: Database, settings: Settings, worker: FakeWorker, journal_dir: Path) -> Iterator[TestClient]:
     """The console with an in-process robot daemon that journals, as the daemon process does."""
     app = create_app(settings, database=database, worker=None)
+    twin = default_twin()
     daemon = RobotDaemon(
         robot=settings.robot,
         worker=worker,  # type: ignore[arg-type]
         database=database,
         journal_dir=journal_dir,
+        planner=InlinePlanner(twin, settings.control_rate_hz, SupervisorConfig()),
+        twin=twin,
+        plan_store=PlanStore(journal_dir.parent / "plans"),
         chunk_period_s=0.05,
         shutdown_wait_s=0.0,
     )

@@ -630,3 +630,27 @@ def test_streamed_exports_hold_one_batch_not_the_run(twin, tmp_path: Path):
 
     short, long = peak_bytes(2_000), peak_bytes(8_000)
     assert long < 1.5 * short, (short, long)
+
+
+def test_the_posturography_command_measures_an_exported_c3d_as_the_run_was_recorded(log, columns, twin, tmp_path):
+    """Issue 22 §5: a C3D the product exported gives the COP measures of the run's own net COP (the two plates
+    weighted by their vertical force; a plate under 20 N carries no COP)."""
+    from core.posturography import net_cop, sway_metrics
+    from server.cli.posturography_commands import measures
+    from server.sessions.balance import foot_origins_m
+
+    data, _, filename = export_session(log, "c3d")
+    path = tmp_path / filename
+    path.write_bytes(data)
+    measured = measures(path, filtered=False)
+
+    force = columns["plate_force_z_n"]
+    loaded = np.where(force >= COP_FORCE_THRESHOLD_N, force, 0.0)
+    cop = net_cop(loaded, columns["plate_cop_m"], foot_origins_m(twin))
+    expected = sway_metrics(np.arange(SAMPLE_COUNT) / SAMPLE_RATE_HZ, cop)
+    assert measured["window"]["samples"] == SAMPLE_COUNT  # the padded last frame is not a sample
+    assert measured["measures"]["mean_velocity_mm_s"] == pytest.approx(expected.mean_velocity_m_s * 1e3, rel=1e-5)
+    assert measured["measures"]["confidence_ellipse_area_95_mm2"] == pytest.approx(
+        expected.confidence_ellipse_area_95_m2 * 1e6, rel=1e-5
+    )
+    assert measured["measures"]["range_ap_mm"] == pytest.approx(expected.range_ap_m * 1e3, rel=1e-5)

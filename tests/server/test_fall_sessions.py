@@ -19,7 +19,7 @@ from core.plan.build import plan_prescription
 from core.robot import default_twin
 from server.hal.backends import make_hal
 from server.hal.base import HalState
-from server.realtime.pipeline import TickPipeline
+from server.realtime.pipeline import TickPipeline, start_along_checked_approach
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import StopReason, SupervisorState, state_dict
 from tests.server.canopen_fixtures import brisk_configuration, no_leaked_threads  # noqa: F401 (autouse fixture)
@@ -78,7 +78,7 @@ def run_session(
 
     pipeline = loaded_pipeline(backend, patient, cue, duration_s, record)
     built.append(pipeline)
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     session_times = []
     rate_hz = pipeline.control_rate_hz
     for tick in range(round((duration_s + 30.0) * rate_hz)):
@@ -154,7 +154,7 @@ def test_backends_that_read_the_plates_run_the_detectors_and_say_nothing(backend
     pipeline = loaded_pipeline(
         backend, {"body_mass_kg": 64.0, "height_m": 1.75}, SINE_X, 1.0, lambda k, d, _: events.append((k, d))
     )
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     assert pipeline.fall_monitor is not None and pipeline.fall_monitor.detectors
     assert not [details for kind, details in events if kind == "fall_detection_unavailable"]
     pipeline.tick(0)
@@ -210,7 +210,7 @@ def test_fall_times_events_and_telemetry_share_the_session_clock_when_ticks_are_
         "kinematic", patient, SINE_X, 20.0, lambda kind, details, _: events.append((kind, details, clock.now_ns))
     )
     start_ns = clock.now_ns
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     period_ns = round(1e9 / RATE_HZ)
     session_times, skipped = [], []
     for tick in range(30 * RATE_HZ):

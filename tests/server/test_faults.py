@@ -32,7 +32,6 @@ pytestmark = pytest.mark.slow
 
 NO_ROBOT_PROCESS = "no robot process: the drives stop on their own heartbeat loss"
 LONG_LOAD = [{"cue": SHORT_SINE, "duration_s": 900.0}]  # its offline check takes several seconds
-LOAD_HEAD_START_S = 1.5  # lets the start request reach the load; the load itself takes far longer
 
 
 def start_ok(console: Console, session_id: int) -> dict:
@@ -54,27 +53,6 @@ def samples_grow(console: Console, run_id: int, beyond: int) -> int:
 def parse_utc(value: object) -> dt.datetime:
     parsed = value if isinstance(value, dt.datetime) else dt.datetime.fromisoformat(str(value))
     return parsed if parsed.tzinfo else parsed.replace(tzinfo=dt.UTC)
-
-
-def test_defect_1_the_emergency_stop_is_latched_while_a_prescription_loads(console: Console) -> None:
-    session_id = console.book(segments=LONG_LOAD)
-    starter, started = in_background(lambda: console.post(f"/sessions/{session_id}/start"))
-    time.sleep(LOAD_HEAD_START_S)
-    assert starter.is_alive(), f"the load was too quick to test: {started}"
-    estop = console.post("/estop")
-    assert estop.status_code == 200, estop.text
-    # Latched in the robot's shared memory now, while the load is still going on:
-    state = console.get("/robot/state").json()
-    assert state["estop_latched"], f"the robot has not latched the emergency stop: {state}"
-    starter.join(600)
-    assert started and not isinstance(started[0], Exception) and started[0].status_code != 200, started
-    robot_events = [e for e in console.events() if e["detector"] != "console"]
-    latched = [e for e in robot_events if e["kind"] == "emergency_stop"]
-    checked = [e for e in robot_events if e["kind"] == "prescription_checked"]
-    assert latched, f"no emergency stop recorded: {[e['kind'] for e in robot_events]}"
-    assert not checked or parse_utc(latched[0]["utc"]) < parse_utc(checked[0]["utc"]), (
-        f"the robot latched the emergency stop at {latched[0]['utc']}, only after the load ended at {checked[0]['utc']}"
-    )
 
 
 def test_defect_2_a_killed_web_process_leaves_no_open_run_and_a_free_robot(console: Console, tmp_path: Path) -> None:
@@ -101,49 +79,6 @@ def test_defect_2_a_killed_web_process_leaves_no_open_run_and_a_free_robot(conso
     assert console.acknowledge_pending() == run["id"]  # the interruption moved the patient (issue 20, build 9)
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
-
-
-def test_defect_3_refused_and_racing_starts_never_change_the_running_run(console: Console) -> None:
-    running_session = console.book()
-    running = start_ok(console, running_session)
-    before = samples_grow(console, running["id"], 0)
-    other_robot = console.post(f"/sessions/{console.book(robot='twin-2')}/start")
-    assert other_robot.status_code == 409, other_robot.text
-    samples_grow(console, running["id"], before + 2000)  # the refusal did not freeze the recording
-    stopped = console.post(f"/sessions/{running_session}/stop")
-    assert stopped.status_code == 200, stopped.text
-    wait_for(lambda: console.get("/robot/state").json().get("state") in ("stopped", "idle"), EVENT_TIMEOUT_S, "stop")
-    console.post("/robot/reset")
-
-    first, second = console.book(), console.book()
-    gate = threading.Barrier(2)
-
-    def race(session_id: int) -> object:
-        gate.wait()
-        return console.post(f"/sessions/{session_id}/start")
-
-    threads = [in_background(lambda s=s: race(s)) for s in (first, second)]
-    for thread, _ in threads:
-        thread.join(600)
-    answers = [result[0] for _, result in threads]
-    winners = [a for a in answers if not isinstance(a, Exception) and a.status_code == 200]
-    assert len(winners) == 1, [getattr(a, "text", a) for a in answers]
-    winner = winners[0].json()
-    samples_grow(console, winner["id"], 1000)
-    start_events = [e for e in console.events() if e["kind"] == "start"]
-    assert start_events and start_events[-1]["run_id"] == winner["id"], start_events
-
-
-@pytest.fixture
-def sim_console(tmp_path: Path) -> Iterator[Console]:
-    """The default backend (MuJoCo), with the 3D view on, as the console ships."""
-    instance = Console(tmp_path / "sim-console", backend="sim", extra_env={"SSP_REHAB_VIZ_ENABLED": "true"})
-    instance.extra_env["SSP_REHAB_VIZ_PORT"] = str(type(instance)(tmp_path).port)
-    instance.start()
-    try:
-        yield instance
-    finally:
-        instance.stop()
 
 
 def test_defect_4_saving_a_large_prescription_does_not_stop_a_running_session(sim_console: Console) -> None:
@@ -191,6 +126,21 @@ def test_defect_5_a_dead_worker_is_reported_and_the_estop_says_nobody_received_i
         assert estop.status_code == 503 and NO_ROBOT_PROCESS in estop.text, estop.text
 
 
+def test_a_daemon_stopped_while_it_restarts_its_worker_exits_and_leaves_no_worker(console: Console) -> None:
+    """A stop that reaches the daemon while it starts a new worker (after the old one died) must end that new
+    worker too: it was installed after the shutdown, and the daemon never exited, its worker ticking on."""
+    started = [e for e in console.events() if e["kind"] == "worker_started"]
+    details = started[-1]["details"]
+    worker_pid = int((details if isinstance(details, dict) else json.loads(details))["pid"])
+    daemon = console.daemon_pid()
+    assert daemon is not None
+    robot_log = console.data_dir / "robots" / f"{console.robot}.log"
+    os.kill(worker_pid, signal.SIGKILL)
+    wait_for(lambda: "starting a new worker" in robot_log.read_text(), EVENT_TIMEOUT_S, "the worker's restart")
+    os.kill(daemon, signal.SIGTERM)
+    wait_for(lambda: not alive(daemon), 180.0, f"daemon {daemon} to exit after its stop ({robot_log})")
+
+
 def test_defect_6_a_killed_web_process_loses_no_telemetry_and_no_events(console: Console, tmp_path: Path) -> None:
     run = start_ok(console, console.book())
     console.wait_moving()
@@ -227,27 +177,6 @@ def wait_run_ended(console: Console, run_id: int, timeout_s: float = EVENT_TIMEO
     return dict(row)
 
 
-def test_sigstop_of_the_web_process_stops_its_session_and_frees_the_robot(console: Console) -> None:
-    run = start_ok(console, console.book())
-    console.wait_moving()
-    console.signal(signal.SIGSTOP)
-    try:
-        ended = wait_run_ended(console, run["id"])
-    finally:
-        console.signal(signal.SIGCONT)
-    assert ended["outcome"] == "interrupted", ended
-    # The daemon ends the run at once; the worker's own events reach the record through its recorder after.
-    expected = {"service_lost", "controlled_stop", "drives_disabled"}
-    wait_for(
-        lambda: expected <= {e["kind"] for e in console.events(run["id"])},
-        EVENT_TIMEOUT_S,
-        f"the worker's {sorted(expected)} events",
-    )
-    assert console.acknowledge_pending() == run["id"]
-    again = console.post(f"/sessions/{console.book()}/start")
-    assert again.status_code == 200, f"the robot is not free: {again.text}"
-
-
 def test_kill_of_the_daemon_is_reported_at_once_and_its_run_closed_by_the_next_daemon(console: Console) -> None:
     run = start_ok(console, console.book())
     console.wait_moving()
@@ -270,52 +199,6 @@ def test_kill_of_the_daemon_is_reported_at_once_and_its_run_closed_by_the_next_d
     assert console.acknowledge_pending() == run["id"]
     again = console.post(f"/sessions/{console.book()}/start")
     assert again.status_code == 200, f"the robot is not free: {again.text}"
-
-
-def test_sigstop_of_the_daemon_is_reported_and_the_worker_still_takes_the_estop(console: Console) -> None:
-    run = start_ok(console, console.book())
-    console.wait_moving()
-    daemon = console.daemon_pid()
-    assert daemon is not None
-    os.kill(daemon, signal.SIGSTOP)
-    try:
-        robot = wait_for(
-            lambda: (h := console.health()["robot"])["state"] == "absent" and h, 10.0, "/health to notice the hang"
-        )
-        assert "stopped answering" in robot["reason"], robot
-        assert console.get("/robot/state").status_code == 503
-        estop = console.post("/estop")
-        assert estop.status_code == 200, estop.text  # the worker itself is alive and latched it
-    finally:
-        os.kill(daemon, signal.SIGCONT)
-    ended = wait_run_ended(console, run["id"])
-    assert ended["outcome"] in ("emergency_stop", "interrupted"), ended
-    wait_for(console.robot_ready, EVENT_TIMEOUT_S, "the daemon to answer again")
-
-
-def test_the_estop_during_a_large_upload_is_latched(console: Console) -> None:
-    start_ok(console, console.book())
-    console.wait_moving()
-    rows = "\n".join(f"{i * 0.01:.2f},0.1,0.2,0.0" for i in range(50_000))
-    body = {
-        "patient_id": console.get("/patients").json()[0]["id"],
-        "name": "replay",
-        "segments": [
-            {
-                "cue": {
-                    "kind": "csv_replay",
-                    "csv": "time_s,specific_force_x_m_s2,specific_force_y_m_s2,specific_force_z_m_s2\n" + rows,
-                },
-                "duration_s": 60.0,
-            }
-        ],
-    }
-    uploader, uploaded = in_background(lambda: console.post("/prescriptions", json=body))
-    estop = console.post("/estop")
-    assert estop.status_code == 200, estop.text
-    assert console.get("/robot/state").json()["estop_latched"]
-    uploader.join(300)
-    assert uploaded and not isinstance(uploaded[0], Exception) and uploaded[0].status_code == 201
 
 
 def test_only_the_console_holding_the_session_control_starts_motion(console: Console) -> None:
@@ -357,3 +240,146 @@ def test_the_robot_reports_starting_then_ready_and_never_absent_meanwhile(tmp_pa
         assert states[0] == "starting" and states[-1] == "ready" and set(states) <= {"starting", "ready"}, seen
     finally:
         console.stop()
+
+
+# --- on one console shared by the tests that leave it whole: last, so that it never holds a CPU claim
+# while the tests above start consoles of their own ---------------------------------------------------
+
+
+def test_defect_1_the_emergency_stop_is_latched_while_a_prescription_loads(resting_console: Console) -> None:
+    console = resting_console
+    earlier = max((e["id"] for e in console.events()), default=0)  # the shared console's earlier tests' events
+    session_id = console.book(segments=LONG_LOAD)
+    starter, started = in_background(lambda: console.post(f"/sessions/{session_id}/start"))
+    daemon_log = console.data_dir / "robots" / f"{console.robot}.log"
+    loading = f"session {session_id}: planning and checking its prescription"  # the daemon's log line
+    wait_for(lambda: loading in daemon_log.read_text() or not starter.is_alive(), START_TIMEOUT_S, "the load")
+    assert starter.is_alive(), f"the load was too quick to test: {started}"
+    estop = console.post("/estop")
+    assert estop.status_code == 200, estop.text
+    # Latched in the robot's shared memory now, while the load is still going on:
+    state = console.get("/robot/state").json()
+    assert state["estop_latched"], f"the robot has not latched the emergency stop: {state}"
+    starter.join(600)
+    assert started and not isinstance(started[0], Exception) and started[0].status_code != 200, started
+    robot_events = [e for e in console.events() if e["id"] > earlier and e["detector"] != "console"]
+    latched = [e for e in robot_events if e["kind"] == "emergency_stop"]
+    checked = [e for e in robot_events if e["kind"] == "prescription_checked"]
+    assert latched, f"no emergency stop recorded: {[e['kind'] for e in robot_events]}"
+    assert not checked or parse_utc(latched[0]["utc"]) < parse_utc(checked[0]["utc"]), (
+        f"the robot latched the emergency stop at {latched[0]['utc']}, only after the load ended at {checked[0]['utc']}"
+    )
+
+
+def test_defect_3_refused_and_racing_starts_never_change_the_running_run(resting_console: Console) -> None:
+    console = resting_console
+    running_session = console.book()
+    running = start_ok(console, running_session)
+    before = samples_grow(console, running["id"], 0)
+    other_robot = console.post(f"/sessions/{console.book(robot='twin-2')}/start")
+    assert other_robot.status_code == 409, other_robot.text
+    samples_grow(console, running["id"], before + 2000)  # the refusal did not freeze the recording
+    stopped = console.post(f"/sessions/{running_session}/stop")
+    assert stopped.status_code == 200, stopped.text
+    wait_for(lambda: console.get("/robot/state").json().get("state") in ("stopped", "idle"), EVENT_TIMEOUT_S, "stop")
+    console.post("/robot/reset")
+
+    first, second = console.book(), console.book()
+    gate = threading.Barrier(2)
+
+    def race(session_id: int) -> object:
+        gate.wait()
+        return console.post(f"/sessions/{session_id}/start")
+
+    threads = [in_background(lambda s=s: race(s)) for s in (first, second)]
+    for thread, _ in threads:
+        thread.join(600)
+    answers = [result[0] for _, result in threads]
+    winners = [a for a in answers if not isinstance(a, Exception) and a.status_code == 200]
+    assert len(winners) == 1, [getattr(a, "text", a) for a in answers]
+    winner = winners[0].json()
+    samples_grow(console, winner["id"], 1000)
+    start_events = [e for e in console.events() if e["kind"] == "start"]
+    assert start_events and start_events[-1]["run_id"] == winner["id"], start_events
+
+
+@pytest.fixture
+def sim_console(tmp_path: Path) -> Iterator[Console]:
+    """The default backend (MuJoCo), with the 3D view on, as the console ships."""
+    instance = Console(tmp_path / "sim-console", backend="sim", extra_env={"SSP_REHAB_VIZ_ENABLED": "true"})
+    instance.extra_env["SSP_REHAB_VIZ_PORT"] = str(type(instance)(tmp_path).port)
+    instance.start()
+    try:
+        yield instance
+    finally:
+        instance.stop()
+
+
+def test_sigstop_of_the_web_process_stops_its_session_and_frees_the_robot(resting_console: Console) -> None:
+    console = resting_console
+    run = start_ok(console, console.book())
+    console.wait_moving()
+    console.signal(signal.SIGSTOP)
+    try:
+        ended = wait_run_ended(console, run["id"])
+    finally:
+        console.signal(signal.SIGCONT)
+    assert ended["outcome"] == "interrupted", ended
+    # The daemon ends the run at once; the worker's own events reach the record through its recorder after.
+    expected = {"service_lost", "controlled_stop", "drives_disabled"}
+    wait_for(
+        lambda: expected <= {e["kind"] for e in console.events(run["id"])},
+        EVENT_TIMEOUT_S,
+        f"the worker's {sorted(expected)} events",
+    )
+    assert console.acknowledge_pending() == run["id"]
+    again = console.post(f"/sessions/{console.book()}/start")
+    assert again.status_code == 200, f"the robot is not free: {again.text}"
+
+
+def test_sigstop_of_the_daemon_is_reported_and_the_worker_still_takes_the_estop(resting_console: Console) -> None:
+    console = resting_console
+    run = start_ok(console, console.book())
+    console.wait_moving()
+    daemon = console.daemon_pid()
+    assert daemon is not None
+    os.kill(daemon, signal.SIGSTOP)
+    try:
+        robot = wait_for(
+            lambda: (h := console.health()["robot"])["state"] == "absent" and h, 10.0, "/health to notice the hang"
+        )
+        assert "stopped answering" in robot["reason"], robot
+        assert console.get("/robot/state").status_code == 503
+        estop = console.post("/estop")
+        assert estop.status_code == 200, estop.text  # the worker itself is alive and latched it
+    finally:
+        os.kill(daemon, signal.SIGCONT)
+    ended = wait_run_ended(console, run["id"])
+    assert ended["outcome"] in ("emergency_stop", "interrupted"), ended
+    wait_for(console.robot_ready, EVENT_TIMEOUT_S, "the daemon to answer again")
+
+
+def test_the_estop_during_a_large_upload_is_latched(resting_console: Console) -> None:
+    console = resting_console
+    start_ok(console, console.book())
+    console.wait_moving()
+    rows = "\n".join(f"{i * 0.01:.2f},0.1,0.2,0.0" for i in range(50_000))
+    body = {
+        "patient_id": console.get("/patients").json()[0]["id"],
+        "name": "replay",
+        "segments": [
+            {
+                "cue": {
+                    "kind": "csv_replay",
+                    "csv": "time_s,specific_force_x_m_s2,specific_force_y_m_s2,specific_force_z_m_s2\n" + rows,
+                },
+                "duration_s": 60.0,
+            }
+        ],
+    }
+    uploader, uploaded = in_background(lambda: console.post("/prescriptions", json=body))
+    estop = console.post("/estop")
+    assert estop.status_code == 200, estop.text
+    assert console.get("/robot/state").json()["estop_latched"]
+    uploader.join(300)
+    assert uploaded and not isinstance(uploaded[0], Exception) and uploaded[0].status_code == 201

@@ -22,7 +22,7 @@ OBJECT_PARAMETERS = set(PATIENT_OBJECTS) | set(SELF_OBJECTS)
 # Unscoped routes that name a patient's object in their body: refused like a path id.
 BODY_SCOPED = {
     ("POST", "/prescriptions"),
-    ("POST", "/prescriptions/preview"),
+    ("POST", "/prescriptions/previews"),
     ("POST", "/sessions"),
     ("POST", "/viz/replay"),
     ("POST", "/viz/figure"),

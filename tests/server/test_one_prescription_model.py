@@ -21,7 +21,7 @@ from core.robot import TwinRobot, default_twin
 from core.shaping import ShapingParameters
 from server.hal.kinematic import KinematicHal
 from server.prescriptions.preview import prescription_preview
-from server.realtime.pipeline import TickPipeline
+from server.realtime.pipeline import TickPipeline, start_along_checked_approach
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import SupervisorState
 from tests.server.conftest import SEGMENT, Seed, create_patient
@@ -114,16 +114,16 @@ def _played(twin: TwinRobot, plan: Any, ticks: int) -> np.ndarray:
     pipeline = TickPipeline(twin, hal, plan.control_rate_hz, SupervisorConfig(), lambda *_: None)
     pipeline.load(plan)
     pipeline.heartbeat()
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     poses, cueing = [], False
     for _ in range(ticks):
         pipeline.heartbeat()
         pipeline.tick(0)
-        # From the first tick that played the cue (the phase switches to CUE at the end of the approach's last).
-        cueing = cueing or (pipeline.supervisor.phase.name == "CUE" and pipeline.segment_tick > 0)
-        if cueing:
+        # From the plan's first sample on (after the approach).
+        cueing = cueing or pipeline.source.plan_index >= 0
+        if cueing and pipeline.wrote_this_tick:
             poses.append(pipeline.pose.copy())
-        if pipeline.supervisor.state is SupervisorState.STOPPED:  # the tick that reached neutral ends it
+        if pipeline.supervisor.state is SupervisorState.STOPPED:  # the plan's last sample ended it
             break
     return np.array(poses)
 

@@ -18,7 +18,7 @@ from core.plan.check import PrescriptionRejected, check_plan
 from core.plan.prescription import PrescriptionError
 from core.robot import TwinRobot, default_twin
 from server.hal.kinematic import KinematicHal
-from server.realtime.pipeline import TickPipeline
+from server.realtime.pipeline import TickPipeline, start_along_checked_approach
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import SupervisorState
 
@@ -53,14 +53,14 @@ def test_the_pipeline_plays_the_planned_trajectory(twin, optimal_step_plan) -> N
     pipeline = TickPipeline(twin, hal, 1000, SupervisorConfig(), lambda *_: None)
     pipeline.load(optimal_step_plan)
     pipeline.heartbeat()
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     planned = optimal_step_plan.segments[0].planned_poses
     played = []
     for _ in range(8000):
         pipeline.heartbeat()
         pipeline.tick(0)
-        if pipeline.supervisor.phase.name == "CUE" and pipeline.segment_tick > 0:
-            played.append((pipeline.segment_tick - 1, pipeline.pose.copy()))
+        if pipeline.supervisor.phase.name == "CUE" and 0 <= pipeline.source.plan_index < len(planned):
+            played.append((pipeline.source.plan_index, pipeline.pose.copy()))
         assert pipeline.supervisor.state is SupervisorState.RUNNING
     assert len(played) > 3000
     ticks = np.array([tick for tick, _ in played])

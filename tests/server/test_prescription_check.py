@@ -13,7 +13,7 @@ from core.plan.check import PrescriptionRejected
 from core.plan.prescription import PrescriptionError
 from core.robot import TwinRobot
 from server.hal.kinematic import KinematicHal
-from server.realtime.pipeline import TickPipeline
+from server.realtime.pipeline import TickPipeline, start_along_checked_approach
 from server.realtime.supervisor import SupervisorConfig
 from server.realtime.telemetry import SupervisorState
 
@@ -74,12 +74,12 @@ def test_the_offline_check_and_the_running_pipeline_agree_on_when_a_limit_is_hit
     )
     pipeline.load(plan_prescription(prescription, twin))  # unchecked, on purpose
     pipeline.heartbeat()
-    pipeline.start()
+    start_along_checked_approach(pipeline)
     approach_ticks = 0
     for _ in range(10_000):
         pipeline.heartbeat()
         pipeline.tick(0)
-        approach_ticks += pipeline.segment_tick == 0
+        approach_ticks += pipeline.source.plan_index < 0
         if pipeline.supervisor.state is not SupervisorState.RUNNING:
             break
     hit = next(details for kind, details in events if kind == "limit_hit")

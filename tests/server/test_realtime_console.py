@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
 from benchmarks.fault_harness import SHORT_SINE, Console
+from tests.server.conftest import finished_preview
 
 pytestmark = pytest.mark.slow
 
@@ -19,9 +19,12 @@ pytestmark = pytest.mark.slow
 HEAVY_PREVIEW = {"segments": [{"cue": SHORT_SINE, "duration_s": 200.0}]}
 
 
-@pytest.fixture
-def console(tmp_path: Path) -> Iterator[Console]:
-    instance = Console(tmp_path / "console", extra_env={"SSP_REHAB_REALTIME_LOCK_DIR": str(tmp_path / "claims")})
+@pytest.fixture(scope="module")
+def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
+    """One console for the module (its tests leave every process of it running), with a CPU-claim directory
+    of its own."""
+    root = tmp_path_factory.mktemp("realtime")
+    instance = Console(root / "console", extra_env={"SSP_REHAB_REALTIME_LOCK_DIR": str(root / "claims")})
     instance.start()
     try:
         yield instance
@@ -49,9 +52,9 @@ def test_a_heavy_preview_during_a_run_does_not_end_it(console: Console) -> None:
     assert started.status_code == 200, started.text
     run_id = started.json()["id"]
     console.wait_moving()
-    preview = console.post("/prescriptions/preview", json=HEAVY_PREVIEW, timeout=2000.0)
-    assert preview.status_code == 200, preview.text[:300]
-    assert preview.json()["verdict"]["accepted"] is True
+    started = console.post("/prescriptions/previews", json=HEAVY_PREVIEW)
+    preview = finished_preview(console.get, started, timeout_s=2000.0)
+    assert preview["state"] == "ready" and preview["preview"]["verdict"]["accepted"] is True, preview["state"]
     run = console.run(run_id)
     assert run["state"] == "running" and run["outcome"] is None, run
     stops = [e for e in console.events(run_id) if e["kind"] in ("run_ended", "service_lost", "controlled_stop")]

@@ -17,10 +17,10 @@ from core.plan.prescription import CSV_CUE_MAX_BYTES, PrescriptionError, parse_p
 from server.db import Database
 from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.journal import RunJournal, read_journal
+from server.robotd.models import SessionEvent, SessionRun, TelemetryChunk
 from server.robotd.process import AlreadyRunning, daemon_running, take_lock
 from server.robotd.recovery import recover_open_runs
 from server.robotd.status import DAEMON_STALE_S, DaemonState, RobotPaths, StatusBlock
-from server.sessions.models import SessionEvent, SessionRun, TelemetryChunk
 from tests.server.conftest import FakeWorker, Seed, booked_session, wait_until
 
 
@@ -111,7 +111,7 @@ def test_a_refused_start_for_another_robot_leaves_the_running_run_recording(
     wait_until(lambda: robot_client.get(f"/api/v1/runs/{run_id}", headers=seed.headers()).json()["sample_count"] == 300)
     events = robot_client.get(f"/api/v1/runs/{run_id}/events", headers=seed.headers()).json()
     assert "limit_hit" in [e["kind"] for e in events]  # filed under the run, not under none
-    assert fake_worker.command_names() == ["load_prescription", "start_motion"]  # the refusal never reached it
+    assert fake_worker.command_names() == ["load_plan", "start_motion"]  # the refusal never reached it
 
 
 def test_a_silent_status_record_reads_as_absent() -> None:
@@ -139,16 +139,16 @@ def test_a_start_that_cannot_be_recorded_stops_the_robot_again_and_says_why(
 ) -> None:
     from sqlalchemy.exc import OperationalError
 
-    from server.sessions import service
+    from server.robotd import runs
 
     booked = booked_session(robot_client, seed.headers())
 
     def read_only(**_: object) -> None:
         raise OperationalError("INSERT INTO session_runs", {}, Exception("attempt to write a readonly database"))
 
-    monkeypatch.setattr(service, "record_start", read_only)
+    monkeypatch.setattr(runs, "record_start", read_only)
     response = robot_client.post(f"/api/v1/sessions/{booked.session_id}/start", headers=seed.headers())
     assert response.status_code == 503 and "readonly database" in response.json()["detail"], response.text
     assert "stopped again" in response.json()["detail"]
-    assert fake_worker.command_names() == ["load_prescription", "start_motion", "stop"]
+    assert fake_worker.command_names() == ["load_plan", "start_motion", "stop"]
     assert robot_client.app.state.robot.active_run() is None

@@ -104,7 +104,8 @@ def test_run_report_pdf_holds_the_runs_facts(robot_client: TestClient, seed: See
         f"Session report: run {run['id']}", "Greta Testperson", "MRN-4711", "165 cm", "60.0 kg",
         "Lateral sway, version 1", "sine", "amplitude 0.50 m/s²", "frequency 0.50 Hz", "30 s",
         "fall detected", "harness load 310 N", "1.5 s into the run",
-        "RMS distance", "95 % ellipse area", "Cue quality", "Perception error",
+        # 1.5 s of telemetry: too short for sway measures, and the report says so (issue 22 §6).
+        "Not measured: the sway measures need at least 20 s of the run in motion", "Cue quality", "Perception error",
         SOAP["subjective"], SOAP["plan"], "patient checked", "Acknowledged by therapist at",
         "Therapist notes (SOAP), by therapist",
     ):  # fmt: skip
@@ -201,7 +202,7 @@ def test_the_robot_does_not_start_again_before_the_fall_is_acknowledged(
     robot_client.post(f"/api/v1/runs/{run['id']}/acknowledge", json={}, headers=seed.headers())
     started = robot_client.post(f"/api/v1/sessions/{booking['id']}/start", headers=seed.headers())
     assert started.status_code == 200, started.text
-    assert fake_worker.command_names()[len(commands_before) :] == ["load_prescription", "start_motion"]
+    assert fake_worker.command_names()[len(commands_before) :] == ["load_plan", "start_motion"]
 
 
 def test_cue_quality_is_near_zero_when_the_platform_delivers_the_cue_and_grows_when_it_does_not() -> None:
@@ -217,7 +218,8 @@ def test_cue_quality_is_near_zero_when_the_platform_delivers_the_cue_and_grows_w
     pose[:, 0] = amplitude_m * np.sin(omega * time_s)
     delivered = np.zeros((len(time_s), 3))
     delivered[:, 0] = -amplitude_m * omega**2 * np.sin(omega * time_s)
-    columns = {"time_s": time_s, "stance_pose": pose, "cue_angular_velocity_rad_s": np.zeros((len(time_s), 3))}
+    columns = {"time_s": time_s, "stance_pose": pose, "measured_stance_pose": pose,
+               "cue_angular_velocity_rad_s": np.zeros((len(time_s), 3))}  # fmt: skip
     matched = cue_quality({**columns, "cue_specific_force_m_s2": delivered})
     doubled = cue_quality({**columns, "cue_specific_force_m_s2": 2 * delivered})
     assert matched is not None and doubled is not None
@@ -226,3 +228,31 @@ def test_cue_quality_is_near_zero_when_the_platform_delivers_the_cue_and_grows_w
     assert matched["correlation"]["x"] > 0.999 and matched["correlation"]["y"] is None  # no y motion
     assert doubled["perceived_error_rms_m_s2"]["x"] > 10 * matched["perceived_error_rms_m_s2"]["x"]
     assert doubled["perception_error_thresholds"] > matched["perception_error_thresholds"]
+
+
+def test_the_delivered_cue_is_the_measured_motion_not_the_jitter_of_the_time_stamps() -> None:
+    """Issue 22 §6: the run PDF showed the platform's delivered sideways acceleration swinging ±100 m/s² against a
+    commanded 0.3–0.5 m/s² (correlation 0.01): the commanded pose, differentiated twice over time stamps that
+    jitter by tenths of a millisecond. A 1 kHz run whose stamps jitter so, swaying y = A sin(ωt): what the
+    platform delivered is −Aω² sin(ωt), within a few per cent, and it follows the cue."""
+    import numpy as np
+
+    from server.reports.facts import cue_quality
+
+    rate_hz, amplitude_m, omega = 1000.0, 0.02, 2 * np.pi * 0.5
+    nominal = np.arange(0, 20, 1 / rate_hz)
+    stamps = nominal + np.random.default_rng(7).uniform(0.0, 4e-4, len(nominal))  # when each tick ran
+    commanded = np.zeros((len(nominal), 6))
+    commanded[:, 1] = amplitude_m * np.sin(omega * nominal)  # the plan's samples, on the period grid
+    measured = np.zeros((len(nominal), 6))
+    measured[:, 1] = amplitude_m * np.sin(omega * stamps)  # where the platform was when it was read
+    cue = np.zeros((len(nominal), 3))
+    cue[:, 1] = -amplitude_m * omega**2 * np.sin(omega * nominal)
+    columns = {"time_s": stamps, "stance_pose": commanded, "measured_stance_pose": measured,
+               "cue_specific_force_m_s2": cue, "cue_angular_velocity_rad_s": np.zeros((len(nominal), 3))}  # fmt: skip
+    quality = cue_quality(columns)
+    assert quality is not None
+    delivered = quality["delivered_m_s2"][1][200:-200]  # y, away from the ends
+    peak = amplitude_m * omega**2  # 0.197 m/s²
+    assert np.max(np.abs(delivered)) == pytest.approx(peak, rel=0.05), np.max(np.abs(delivered))
+    assert quality["correlation"]["y"] > 0.99

@@ -13,7 +13,9 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 
-from server.realtime.client import CommandRefused, WorkerClient
+from server.messages import CommandRefused
+from server.realtime.client import WorkerClient
+from server.robotd.playback import plan_and_load
 from tests.server.conftest import FakeWorker, Seed, booked_session, wait_until
 
 
@@ -110,17 +112,17 @@ def test_the_worker_refuses_a_load_or_start_requested_before_an_emergency_stop()
         client.reset()
         wait_until(lambda: not client.latest_state()["estop_latched"], 30.0)
         with pytest.raises(CommandRefused, match="emergency stop was requested after"):
-            client.load_prescription(SHORT, estop_generation=generation)
+            plan_and_load(client, SHORT, estop_generation=generation)
         current, utc_s = client.estop_request()
         assert current == generation + 1 and utc_s is not None and abs(utc_s - time.time()) < 60.0
-        client.load_prescription(SHORT, estop_generation=current)  # a start asked for after the stop loads
+        plan_and_load(client, SHORT, estop_generation=current)  # a start asked for after the stop loads
         client.emergency_stop()
         wait_until(lambda: client.latest_state()["estop_latched"], 30.0)
         client.reset()
         wait_until(lambda: client.latest_state()["state"] in ("idle", "ready", "stopped"), 30.0)
-        client.load_prescription(SHORT, estop_generation=current + 1)
+        playback, _ = plan_and_load(client, SHORT, estop_generation=current + 1)
         with pytest.raises(CommandRefused, match="emergency stop was requested after"):
-            client.start_motion(estop_generation=current)
+            playback.start(client, estop_generation=current)
         assert client.latest_state()["state"] != "running"
 
 

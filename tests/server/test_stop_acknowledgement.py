@@ -100,3 +100,18 @@ def test_the_therapists_own_stop_and_a_completed_run_need_no_acknowledgement(
         ).session_id
     started = robot_client.post(f"/api/v1/sessions/{session_id}/start", headers=seed.headers())
     assert started.status_code == 200, started.text
+
+
+def test_a_reset_pressed_while_the_robot_still_brakes_waits_for_the_drives_to_be_off(
+    robot_client: TestClient, seed: Seed, fake_worker: FakeWorker
+) -> None:
+    """CI failure, 2026-12-07: Reset clicked within the emergency stop's ramp (at most 2 s) was refused ("the stop
+    ramp is still running") and the robot stayed latched; a clinician presses Reset once. The daemon now waits
+    for the ramp and resets then; any other refusal still answers at once."""
+    fake_worker.braking_resets = 3  # the worker refuses three resets while it brakes, then takes one
+    answer = robot_client.post("/api/v1/robot/reset", headers=seed.headers())
+    assert answer.status_code == 200, answer.text
+    assert fake_worker.command_names().count("reset") == 1 and fake_worker.braking_resets == 0
+    fake_worker.refuse_with = RuntimeError("reset: not accepted in state idle")
+    refused = robot_client.post("/api/v1/robot/reset", headers=seed.headers())
+    assert refused.status_code == 409 and "state idle" in refused.json()["detail"], refused.text

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from core.kinematics import twin_inverse_kinematics
-from core.plan.build import plan_prescription
+from core.plan.build import PrescriptionPlan, plan_prescription
+from core.plan.check import checked_approach, checked_pause, checked_resume
+from core.plan.motion import approach
 from core.plan.ramps import PoseRamp
 from core.robot import TwinRobot
 from core.twin_kernels import TwinKernels
@@ -41,6 +43,7 @@ class Harness:
         self.twin = twin
         self.poses: list[np.ndarray] = []
         self.sliders: list[np.ndarray] = []
+        self.plan: PrescriptionPlan | None = None
 
     @property
     def state(self) -> SupervisorState:
@@ -50,7 +53,29 @@ class Harness:
         segment: dict[str, Any] = {"cue": cue, "duration_s": duration_s}
         if limits:
             segment["limits"] = limits
-        self.pipeline.load(plan_prescription({"segments": [segment]}, self.twin, config=self.pipeline.config))
+        self.plan = plan_prescription({"segments": [segment]}, self.twin, config=self.pipeline.config)
+        self.pipeline.load(self.plan)
+        self.paused_after = -1
+
+    def start(self) -> None:
+        """Start along the checked approach from where the platform stands (unchecked without a plan: the
+        pipeline refuses the start before it looks at the approach)."""
+        self.run(1, heartbeat=False)  # the drives are off: reads the platform's pose
+        standing = self.pipeline.measured_stance
+        if self.plan is None:
+            self.pipeline.start(approach(standing, 1.0 / RATE_HZ, self.pipeline.config))
+        else:
+            self.pipeline.start(checked_approach(self.plan, self.twin, standing))
+
+    def pause(self) -> None:
+        """Arm the checked pause, 10 samples ahead of the one played."""
+        assert self.plan is not None
+        self.paused_after = self.pipeline.source.plan_index + 10
+        self.pipeline.pause(checked_pause(self.plan, self.twin, self.paused_after))
+
+    def resume(self) -> None:
+        assert self.plan is not None
+        self.pipeline.resume(checked_resume(self.plan, self.twin, self.paused_after + 1))
 
     def run(
         self, ticks: int, *, heartbeat: bool = True, lateness_ns: int = 0, until: Callable[[], bool] | None = None
@@ -85,12 +110,12 @@ class Harness:
         self.load()
         if target is S.READY:
             return
-        p.start()
+        self.start()
         self.run(600)  # approach, then into the cue
         if target is S.RUNNING:
             return
         if target is S.PAUSED:
-            p.pause()
+            self.pause()
             self.run(50)
             return
         p.stop()
@@ -110,15 +135,15 @@ def test_normal_session_walks_through_every_state(harness: Harness) -> None:
     assert harness.state is S.IDLE
     harness.load()
     assert harness.state is S.READY and harness.hal.state is HalState.CONFIGURED
-    p.start()
+    harness.start()
     harness.run(300)
     assert harness.state is S.RUNNING and harness.hal.state is HalState.ACTIVE
     assert p.supervisor.phase is Phase.CUE
-    p.pause()
+    harness.pause()
     ticks = harness.run(5000, until=lambda: p.supervisor.phase is Phase.PARKED)
     assert harness.state is S.PAUSED and ticks < 5000
     np.testing.assert_allclose(p.pose, 0.0, atol=1e-9)  # pause washes out to neutral
-    p.resume()
+    harness.resume()
     harness.run(300)
     assert harness.state is S.RUNNING
     p.stop()
@@ -133,7 +158,7 @@ def test_normal_session_walks_through_every_state(harness: Harness) -> None:
 
 def test_a_prescription_plays_to_its_end_and_returns_to_neutral(harness: Harness) -> None:
     harness.load(duration_s=1.0)
-    harness.pipeline.start()
+    harness.start()
     harness.run(30_000, until=lambda: harness.state is S.STOPPED)
     assert harness.state is S.STOPPED
     assert harness.pipeline.supervisor.stop_reason is StopReason.COMPLETED
@@ -143,20 +168,21 @@ def test_a_prescription_plays_to_its_end_and_returns_to_neutral(harness: Harness
 
 def test_commands_in_the_wrong_state_are_refused(harness: Harness) -> None:
     p = harness.pipeline
-    for command in (p.start, p.pause, p.resume, p.stop, p.reset):
+    standing = approach(np.zeros(6), 1.0 / RATE_HZ, p.config)
+    for command in (harness.start, lambda: p.pause(standing), lambda: p.resume(standing), p.stop, p.reset):
         with pytest.raises(TransitionRefused):
             command()
     harness.load()
     with pytest.raises(TransitionRefused, match="resume"):
-        p.resume()
-    p.start()
+        harness.resume()
+    harness.start()
     harness.run(300)
     with pytest.raises(TransitionRefused, match="load"):
         harness.load()
-    p.pause()
+    harness.pause()
     harness.run(5)
     with pytest.raises(TransitionRefused, match="returning to neutral"):
-        p.resume()  # only once parked at neutral
+        harness.resume()  # only once parked at neutral
 
 
 @pytest.mark.parametrize("origin", list(SupervisorState), ids=[s.label for s in SupervisorState])
@@ -174,7 +200,7 @@ def test_emergency_stop_from_every_state_latches_and_reset_never_restarts_motion
     assert set(harness.hal.drive_states) == {DriveState.SWITCH_ON_DISABLED}
     positions = harness.hal._positions.copy()
     with pytest.raises(TransitionRefused):
-        harness.pipeline.start()  # latched: nothing starts until an explicit reset
+        harness.start()  # latched: nothing starts until an explicit reset
     harness.pipeline.reset()
     writes = harness.hal.writes
     harness.run(500)
@@ -187,7 +213,7 @@ def test_emergency_stop_from_every_state_latches_and_reset_never_restarts_motion
 def test_estop_while_running_reaches_standstill_within_the_ramp_with_bounded_jerk(harness: Harness) -> None:
     p, period = harness.pipeline, 1.0 / RATE_HZ
     harness.load(duration_s=5.0)
-    p.start()
+    harness.start()
     harness.run(1200)
     speed_before = np.abs(np.diff(harness.sliders[-2:], axis=0)).max() / period
     assert speed_before > 0.01  # it really was moving
@@ -216,7 +242,7 @@ def test_estop_while_running_in_the_sim_comes_to_a_standstill_within_the_ramp(tw
 
     harness = Harness(twin, hal=SimHal(twin, 1.0 / RATE_HZ))
     harness.load(duration_s=5.0)
-    harness.pipeline.start()
+    harness.start()
     harness.run(1500)
     assert harness.state is S.RUNNING
     assert np.abs(harness.pipeline.reading.velocities_m_s).max() > 0.01  # the physics really moves
@@ -232,7 +258,7 @@ def test_estop_while_running_in_the_sim_comes_to_a_standstill_within_the_ramp(tw
 
 def test_watchdog_stops_motion_after_100_ms_without_heartbeat(harness: Harness) -> None:
     harness.load(duration_s=5.0)
-    harness.pipeline.start()
+    harness.start()
     harness.run(800)
     harness.run(99, heartbeat=False)
     assert harness.state is S.RUNNING
@@ -248,13 +274,13 @@ def test_start_is_refused_without_a_live_heartbeat(harness: Harness) -> None:
     harness.load()
     harness.run(150, heartbeat=False)
     with pytest.raises(TransitionRefused, match="heartbeat"):
-        harness.pipeline.start()
+        harness.start()
 
 
 def test_consecutive_late_ticks_trigger_a_controlled_stop(harness: Harness) -> None:
     late_limit = harness.pipeline.config.late_ticks_to_stop
     harness.load(duration_s=5.0)
-    harness.pipeline.start()
+    harness.start()
     harness.run(500)
     harness.run(late_limit - 1, lateness_ns=800_000)
     harness.run(1)  # an on-time tick resets the streak
@@ -272,7 +298,7 @@ def test_a_limit_hit_is_a_controlled_stop_with_an_event_and_no_command_breaks_th
     tilt_max = 0.05
     step = {"kind": "step", "axis": "y", "final_m_s2": 1.96, "step_time_s": 0.3}  # tilts to 0.2 rad if allowed
     harness.load(step, duration_s=8.0, limits={"tilt_max_rad": tilt_max})  # loaded unchecked, on purpose
-    harness.pipeline.start()
+    harness.start()
     harness.run(20_000, until=lambda: harness.state is S.STOPPED)
     assert harness.state is S.STOPPED
     assert harness.pipeline.supervisor.stop_reason is StopReason.LIMIT
@@ -289,7 +315,7 @@ def test_a_limit_hit_is_a_controlled_stop_with_an_event_and_no_command_breaks_th
 
 def test_a_hal_fault_faults_the_supervisor(harness: Harness) -> None:
     harness.load()
-    harness.pipeline.start()
+    harness.start()
     harness.run(300)
     harness.hal.fault("drive 3: following error")
     harness.run(1)
@@ -302,7 +328,7 @@ def test_a_hal_fault_faults_the_supervisor(harness: Harness) -> None:
 def test_the_kinematic_drives_stop_by_themselves_when_set_points_stop(twin: TwinRobot) -> None:
     harness = Harness(twin, communication_timeout_s=0.02)
     harness.load()
-    harness.pipeline.start()
+    harness.start()
     harness.run(5)
     time.sleep(0.03)
     harness.run(1)

@@ -41,8 +41,9 @@ def test_the_warm_up_fills_numbas_cache_and_a_second_start_only_loads_it(tmp_pat
     first = warm_up(cache_dir)
     assert first["control_rate_hz"] == 1000
     compiled = cached_kernels(cache_dir)
-    pipeline_kernels = [name for name in compiled if "pipeline" in name or "washout" in name]
-    assert pipeline_kernels, f"no tick-path kernel was cached: {sorted(compiled)}"
+    # The tick plays a checked plan through the twin's command kernel (core/twin_kernels.py).
+    tick_kernels = [name for name in compiled if "twin_command_kernel" in name]
+    assert tick_kernels, f"no tick-path kernel was cached: {sorted(compiled)}"
     # The worker compiles the same tick path at its start (compile_tick_path): from a warm cache nothing
     # is compiled again, so no cache file is written again.
     warm_up(cache_dir)

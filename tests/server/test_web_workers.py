@@ -22,9 +22,10 @@ from benchmarks.fault_harness import ADMIN, EVENT_TIMEOUT_S, START_TIMEOUT_S, Co
 WEB_PROCESSES = 2
 
 
-@pytest.fixture
-def console(tmp_path: Path) -> Iterator[Console]:
-    instance = Console(tmp_path / "console", serve_args=("--workers", str(WEB_PROCESSES)))
+@pytest.fixture(scope="module")
+def console(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Console]:
+    """One `serve --workers 2` for the module: its tests leave every process of it running."""
+    instance = Console(tmp_path_factory.mktemp("web-workers") / "console", serve_args=("--workers", str(WEB_PROCESSES)))
     instance.start()
     try:
         yield instance

@@ -5,18 +5,19 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
+from benchmarks.fault_harness import wait_for
 from core.plan.check import PrescriptionRejected
 from server.realtime.client import WorkerClient
 from server.realtime.loop import FixedRateLoop, LoopConfigError
 from server.realtime.shm import Seqlock, SharedRing
 from server.realtime.telemetry import EVENT_DTYPE, TELEMETRY_DTYPE, decode_events, state_dict
+from server.robotd.playback import plan_and_load
 
 LONG_SINE = {
     "segments": [
@@ -35,14 +36,6 @@ TOO_FAST = {
 
 
 TOLERANT_DRIVES = {"communication_timeout_s": 1.0}
-
-
-def _wait_for(predicate: Any, timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.01)
 
 
 @pytest.mark.parametrize("rate", [100, 249, 2001, 1000.0, True])
@@ -69,23 +62,23 @@ def test_client_session_refusal_motion_emergency_stop_and_reset() -> None:
     # and the drives' own stop has its own test (test_supervisor).
     with WorkerClient(None, "kinematic", hal_options=TOLERANT_DRIVES) as client:
         with pytest.raises(PrescriptionRejected) as refused:
-            client.load_prescription(TOO_FAST)
+            plan_and_load(client, TOO_FAST)
         assert refused.value.limit == "slider_velocity"
         state = client.latest_state()
         assert state["state"] == "idle" and state["hal_state"] == "configured"  # refused before any motion
         assert not np.any(client.drain_telemetry()["hal_state"] == 2)  # the HAL was never active
 
-        report = client.load_prescription(LONG_SINE, {"body_mass_kg": 70.0, "height_m": 1.75})
+        playback, report = plan_and_load(client, LONG_SINE, {"body_mass_kg": 70.0, "height_m": 1.75})
         assert report["peak_use"]["tilt"] < 1.0
-        client.start_motion()
+        playback.start(client)
         try:
-            _wait_for(lambda: abs(client.latest_state()["stance_pose"][1]) > 1e-3, 30.0, "motion")
+            wait_for(lambda: abs(client.latest_state()["stance_pose"][1]) > 1e-3, 30.0, "motion")
         except AssertionError as error:
             raise AssertionError(f"{error}: {client.latest_state()['state']}, {client.drain_events()}") from None
         running = client.latest_state()
         assert running["state"] == "running" and running["plate_force_z_n"][0] > 100.0  # the patient stands on it
         client.emergency_stop()
-        _wait_for(lambda: client.latest_state()["hal_state"] == "estop", 5.0, "drives disabled")
+        wait_for(lambda: client.latest_state()["hal_state"] == "estop", 30.0, "drives disabled")
         stopped = client.latest_state()
         assert stopped["state"] == "estop" and stopped["estop_latched"] and stopped["stop_reason"] == "emergency_stop"
         events = client.drain_events()
@@ -96,7 +89,10 @@ def test_client_session_refusal_motion_emergency_stop_and_reset() -> None:
         telemetry = client.drain_telemetry()
         assert len(telemetry) > 100 and np.all(np.diff(telemetry["tick"]) > 0)
         client.reset()
-        time.sleep(0.2)
+        wait_for(lambda: client.latest_state()["state"] == "idle", 30.0, "the reset")
+        # A further 200 ms of the worker's own ticks: a motion the reset restarted would show by then.
+        reset_tick = int(client.latest_state()["tick"])
+        wait_for(lambda: client.latest_state()["tick"] >= reset_tick + 200, 30.0, "200 ticks after the reset")
         after = client.latest_state()
         assert after["state"] == "idle" and after["hal_state"] == "configured"
         np.testing.assert_array_equal(after["slider_command_m"], stopped["slider_command_m"])  # no motion restarted
@@ -106,8 +102,8 @@ def _service(prescription: dict[str, Any], report: Any, hold: Any) -> None:
     """A stand-in for the console service: start a worker, get it moving, tell the test, then wait."""
     client = WorkerClient(None, "kinematic", hal_options=TOLERANT_DRIVES)
     client.start()
-    client.load_prescription(prescription)
-    client.start_motion()
+    playback, _ = plan_and_load(client, prescription)
+    playback.start(client)
     report.send({"state": client.state.name, "events": client.events.name, "worker_pid": client.worker_pid})
     hold.recv()  # blocks until the test kills us
 
@@ -133,21 +129,21 @@ def test_killing_the_service_mid_session_makes_the_worker_stop_safely() -> None:
         state = Seqlock(TELEMETRY_DTYPE, names["state"])
         events = SharedRing(EVENT_DTYPE, 1 << 10, names["events"])
         try:
-            _wait_for(lambda: abs(state_dict(state.read()[0])["stance_pose"][1]) > 2e-3, 60.0, "the platform to move")
+            wait_for(lambda: abs(state_dict(state.read()[0])["stance_pose"][1]) > 2e-3, 60.0, "the platform to move")
         except AssertionError as error:
             seen = [(e["kind"], e["details"]) for e in decode_events(events.drain())]
             raise AssertionError(f"{error}: {state_dict(state.read()[0])['state']}, events {seen}") from None
         assert state_dict(state.read()[0])["state"] == "running"
         os.kill(service.pid, signal.SIGKILL)  # the service dies mid-session
         service.join(10)
-        _wait_for(lambda: state_dict(state.read()[0])["state"] == "stopped", 30.0, "a safe stop")
+        wait_for(lambda: state_dict(state.read()[0])["state"] == "stopped", 30.0, "a safe stop")
         final = state_dict(state.read()[0])
         assert final["stop_reason"] in ("service_lost", "watchdog")
         assert final["hal_state"] == "configured"  # drives off
         np.testing.assert_allclose(final["stance_pose"], 0.0, atol=1e-9)  # returned to neutral first
         kinds = [event["kind"] for event in decode_events(events.drain())]
         assert "controlled_stop" in kinds and "drives_disabled" in kinds
-        _wait_for(lambda: _process_gone(names["worker_pid"]), 20.0, "the orphaned worker to exit")
+        wait_for(lambda: _process_gone(names["worker_pid"]), 20.0, "the orphaned worker to exit")
     finally:
         if service.is_alive():
             service.kill()

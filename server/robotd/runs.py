@@ -18,9 +18,9 @@ from server.db import writes
 from server.errors import ConflictError, InvalidFieldError, NotFoundError
 from server.patients.models import Patient
 from server.prescriptions.models import PrescriptionVersion
+from server.robotd.models import ACTIVE_STATES, RunOutcome, RunState, SessionEvent, SessionRun
 from server.scheduling.models import ScheduledSession
 from server.scheduling.service import get_booking
-from server.sessions.models import ACTIVE_STATES, RunOutcome, RunState, SessionEvent, SessionRun
 
 logger = logging.getLogger(__name__)
 
@@ -98,11 +98,23 @@ def refused(error: Exception) -> Exception:
     if segment is not None and limit is not None:
         time_s = getattr(error, "time_s", None)
         where = f" at t = {time_s:.3f} s" if isinstance(time_s, int | float) else ""
-        return InvalidFieldError(f"segments[{segment}]", getattr(error, "value", None), f"{limit}{where}: {error}")
+        details = {"segment": segment, "time_s": time_s, **getattr(error, "details", {})}
+        return InvalidFieldError(
+            f"segments[{segment}]", getattr(error, "value", None), f"{limit}{where}: {error}", details=details
+        )
     field = getattr(error, "field", None)
     if field is not None and limit is not None:
         return InvalidFieldError(str(field), getattr(error, "value", None), str(limit))
     return ConflictError(f"the robot refused the command: {error}")
+
+
+def plan_inputs(*, session: Session, session_id: int) -> tuple[ScheduledSession, PrescriptionVersion, Patient]:
+    """The booking, its prescription version and patient: what its plan is made from."""
+    booking = get_booking(session=session, session_id=session_id)
+    version = session.get(PrescriptionVersion, booking.prescription_version_id)
+    patient = session.get(Patient, booking.patient_id)
+    assert version is not None and patient is not None  # foreign keys guarantee both
+    return booking, version, patient
 
 
 def startable(

@@ -1,65 +1,19 @@
-"""Session-log helpers shared by the robot daemon's recorder (server.robotd.daemon) and the web side:
-which worker events end a run and with which outcome, event time stamps, telemetry chunk encoding; and
-the web side's telemetry fan-out to WebSocket clients.
-"""
+"""The web side's telemetry fan-out to WebSocket clients."""
 
 from __future__ import annotations
 
 import asyncio
 import datetime as dt
-import io
 import json
 import logging
-from typing import TYPE_CHECKING, Any
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from server.jsonable import to_jsonable
 
 if TYPE_CHECKING:
-    from server.sessions.worker import RobotLink
+    from server.robotd.interfaces import RobotLink
 
 logger = logging.getLogger(__name__)
-
-# Worker event kinds that end a run, and the outcome recorded for each (server/realtime: supervisor and
-# pipeline events). A controlled stop carries its StopReason; the first terminal event of a run wins.
-TERMINAL_EVENT_OUTCOMES = {
-    "fall": "fall",
-    "emergency_stop": "emergency_stop",
-    "limit_hit": "limit_hit",
-    "fault": "fault",
-    "prescription_completed": "completed",
-}
-STOP_REASON_OUTCOMES = {"operator": "stopped", "completed": "completed", "limit": "limit_hit", "fall": "fall",
-                        "emergency_stop": "emergency_stop", "watchdog": "interrupted",
-                        "service_lost": "interrupted", "recording_failed": "interrupted"}  # fmt: skip
-
-
-def terminal_outcome_of(kind: str, details: dict[str, Any]) -> str | None:
-    """The run outcome a worker event implies, or None if the run goes on."""
-    if kind == "controlled_stop":
-        return STOP_REASON_OUTCOMES.get(str(details.get("reason")), "fault")
-    return TERMINAL_EVENT_OUTCOMES.get(kind)
-
-
-def event_utc(value: Any) -> dt.datetime:
-    """The worker's UTC stamp (ISO 8601 string or POSIX seconds); now if it gave none."""
-    if isinstance(value, str):
-        parsed = dt.datetime.fromisoformat(value.replace("Z", "+00:00"))
-        return parsed if parsed.tzinfo else parsed.replace(tzinfo=dt.UTC)
-    if isinstance(value, int | float):
-        return dt.datetime.fromtimestamp(float(value), dt.UTC)
-    return dt.datetime.now(dt.UTC)
-
-
-def encode_chunk(records: np.ndarray) -> bytes:
-    buffer = io.BytesIO()
-    np.save(buffer, records, allow_pickle=False)
-    return buffer.getvalue()
-
-
-def decode_chunk(data: bytes) -> np.ndarray:
-    return np.load(io.BytesIO(data), allow_pickle=False)
 
 
 class TelemetryFanout:
