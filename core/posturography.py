@@ -24,6 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from core.patient import ParameterError, require_in_range
+from core.sampling import on_uniform_grid
 
 CHI2_2DOF_95 = 5.991  # χ² quantile, 2 degrees of freedom, p = 0.95
 Z_95_ONE_SIDED = 1.645  # Prieto's z.05 for the 95 % confidence circle
@@ -124,11 +125,9 @@ def lowpass_cop(
     from scipy.signal import butter, sosfiltfilt
 
     time_s, cop_m = _as_trace(time_s, cop_m)
-    period_s = float(np.median(np.diff(time_s)))
+    uniform_s, period_s, resampled = on_uniform_grid(time_s, cop_m)
     nyquist_hz = 0.5 / period_s
     require_in_range("cutoff_hz", cutoff_hz, 0.0, nyquist_hz, low_open=True, high_open=True)
-    uniform_s = time_s[0] + period_s * np.arange(round((time_s[-1] - time_s[0]) / period_s) + 1)
-    resampled = np.column_stack([np.interp(uniform_s, time_s, cop_m[:, axis]) for axis in range(2)])
     sos = butter(COP_LOWPASS_ORDER, cutoff_hz / nyquist_hz, output="sos")
     if len(uniform_s) <= 3 * (2 * len(sos) + 1):  # too short for filtfilt's padding: nothing to filter
         return uniform_s, resampled

@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from core.fidelity import FidelityScales, fidelity_of_signals, platform_specific_force
 from core.robot import TwinRobot
+from core.sampling import on_uniform_grid
 from core.vestibular import VestibularModel
 from server.errors import ConflictError
 from server.patients.models import Patient
@@ -37,7 +38,7 @@ DELIVERED_POLYORDER = 3
 
 def delivered_motion(columns: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """What the platform delivered (issue 22 §6): the measured stance pose (forward kinematics of the measured
-    sliders), resampled onto a uniform grid at the median sample interval by its time stamps, then fitted by
+    sliders), resampled onto a uniform grid (core.sampling), then fitted by
     a cubic Savitzky–Golay filter over `DELIVERED_WINDOW_S`, whose fit gives the pose, its velocity and its
     acceleration at once; back at the samples' times, each (6, N). None when the run is too short for the
     window. Before, the commanded pose was differentiated twice by finite differences over the stamps, and
@@ -46,12 +47,10 @@ def delivered_motion(columns: dict[str, np.ndarray]) -> tuple[np.ndarray, np.nda
 
     time_s = np.asarray(columns["time_s"], dtype=float)
     measured = np.asarray(columns["measured_stance_pose"], dtype=float)
-    period_s = float(np.median(np.diff(time_s)))
-    grid = time_s[0] + period_s * np.arange(round((time_s[-1] - time_s[0]) / period_s) + 1)
+    grid, period_s, on_grid = on_uniform_grid(time_s, measured)
     window = max(DELIVERED_POLYORDER + 2, round(DELIVERED_WINDOW_S / period_s)) | 1  # odd
     if len(grid) < window:
         return None
-    on_grid = np.column_stack([np.interp(grid, time_s, measured[:, axis]) for axis in range(measured.shape[1])])
     fitted = [
         savgol_filter(on_grid, window, DELIVERED_POLYORDER, deriv=deriv, delta=period_s, axis=0) for deriv in (0, 1, 2)
     ]
