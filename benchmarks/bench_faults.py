@@ -21,7 +21,9 @@ from __future__ import annotations
 import collections
 import contextlib
 import datetime as dt
+import http.client
 import json
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -31,6 +33,7 @@ import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -254,21 +257,53 @@ STOP_PROBE_PERIOD_S = 0.2
 STOP_PROBE_TIMEOUT_S = 10.0
 
 
-def _probe_stops(url: str, headers: dict[str, str], until: threading.Event) -> dict[str, Any]:
-    """POST a stop every STOP_PROBE_PERIOD_S on a new connection (as a click after a pause) until `until`."""
-    confirmed, latched, answers = [], [], collections.Counter[str]()
+TABLET_FIFO_PRIORITY = 20  # above the listener's 10 and below the worker's 80: see `stop_under_load`
+
+
+def _post_once(url: str, headers: dict[str, str]) -> tuple[int, bytes, float]:
+    """One POST on a new connection, as a click after a pause: the standard library's client, whose own
+    cost is a fraction of a millisecond (a new httpx client builds a TLS context each time). Also returns
+    how long the TCP handshake took (ms): the kernel's part, before the listener's process is involved."""
+    parts = urlsplit(url)
+    connection = http.client.HTTPConnection(parts.hostname or "127.0.0.1", parts.port, timeout=STOP_PROBE_TIMEOUT_S)
+    try:
+        started = time.perf_counter()
+        connection.connect()
+        connected_ms = (time.perf_counter() - started) * 1e3
+        connection.request("POST", parts.path or "/", body=b"", headers=headers)
+        response = connection.getresponse()
+        return response.status, response.read(), connected_ms
+    finally:
+        connection.close()
+
+
+def _probe_stops(
+    url: str, headers: dict[str, str], fifo_priority: int | None, until: Any, results: Any, name: str
+) -> None:
+    """In a process of its own (a requester at SCHED_FIFO must not wait for another probe's interpreter
+    lock): POST a stop every STOP_PROBE_PERIOD_S until `until` is set, then put (name, figures) on `results`."""
+    requester = "SCHED_OTHER"
+    if fifo_priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+            requester = f"SCHED_FIFO {fifo_priority}"
+        except OSError as error:
+            requester = f"SCHED_OTHER (SCHED_FIFO refused: {error})"
+    confirmed, latched, connected, answers = [], [], [], collections.Counter[str]()
     while not until.is_set():
         started = time.perf_counter()
         try:
-            response = httpx.post(url, headers=headers, timeout=STOP_PROBE_TIMEOUT_S)
-            answers[str(response.status_code)] += 1
-            if response.status_code == 200:
+            status, body, connected_ms = _post_once(url, headers)
+            answers[str(status)] += 1
+            if status == 200:
                 confirmed.append((time.perf_counter() - started) * 1e3)
-                latched.append(float(response.json()["confirmed_after_ms"]))
-        except httpx.HTTPError as error:
+                latched.append(float(json.loads(body)["confirmed_after_ms"]))
+                connected.append(connected_ms)
+        except OSError as error:  # refused, reset or timed out
             answers[type(error).__name__] += 1
         until.wait(STOP_PROBE_PERIOD_S)
-    return {
+    results.put((name, {
+        "requester": requester,
         "n": sum(answers.values()),
         "answers": dict(answers),
         "confirmed_p50_ms": _p(confirmed, 50),
@@ -278,11 +313,23 @@ def _probe_stops(url: str, headers: dict[str, str], until: threading.Event) -> d
         "latch_to_confirmed_p50_ms": _p(latched, 50),
         "latch_to_confirmed_p99_ms": _p(latched, 99),
         "latch_to_confirmed_max_ms": round(max(latched), 2) if latched else None,
-    }
+        # The kernel's part: the TCP handshake, before the listener accepts.
+        "handshake_p99_ms": _p(connected, 99),
+        "handshake_max_ms": round(max(connected), 2) if connected else None,
+        # The slowest stop, split: handshake, then the listener's accept, handler and answer.
+        "slowest_handshake_ms": round(connected[int(np.argmax(confirmed))], 2) if confirmed else None,
+    }))  # fmt: skip
 
 
 def stop_under_load(console: Console, quick: bool = False) -> dict[str, Any]:
-    """Issue 20: the stop's request → confirmed latch on both paths while loopback_load keeps the web busy."""
+    """Issue 20: the stop's request → confirmed latch on both paths while loopback_load keeps the web busy.
+
+    The button is on the clinician's tablet, a computer of its own; here the requester shares 2 cores with a
+    load generator that stands for 50 other computers' clients and takes this machine's CPU at normal
+    priority. So the listener is probed twice in the same run: by a normal-priority requester (how this
+    machine schedules a process that is not the console's), and by a requester at SCHED_FIFO
+    TABLET_FIFO_PRIORITY, which stands for a tablet whose CPU no one else uses. The second measures what the
+    console adds to the stop; the first adds what a busy requesting machine adds."""
     record_s, load_s, clients = (10.0, 20.0, 20) if quick else (60.0, 90.0, 50)
     session_id = console.book(segments=[{"cue": SHORT_SINE, "duration_s": record_s}])
     run_id = console.post(f"/sessions/{session_id}/start").json()["id"]
@@ -297,14 +344,14 @@ def stop_under_load(console: Console, quick: bool = False) -> dict[str, Any]:
          "--clients", str(clients), "--patient", str(patient)],
         env=console.env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
-    done = threading.Event()
-    results: dict[str, dict[str, Any]] = {}
-    paths = {"listener": (listener, origin), "old_web_route": (f"{console.url}/estop", {})}
-
-    def probe_path(name: str) -> None:
-        results[name] = _probe_stops(*paths[name], done)
-
-    probes = [threading.Thread(target=probe_path, args=(name,)) for name in paths]
+    processes = multiprocessing.get_context("spawn")
+    done, answers = processes.Event(), processes.Queue()
+    paths = {
+        "listener": (listener, origin, None),
+        "listener_from_a_tablet": (listener, origin, TABLET_FIFO_PRIORITY),
+        "old_web_route": (f"{console.url}/estop", {}, None),
+    }
+    probes = [processes.Process(target=_probe_stops, args=(*paths[name], done, answers, name)) for name in paths]
     loads = [os.getloadavg()[0]]
     for probe in probes:
         probe.start()
@@ -312,11 +359,12 @@ def stop_under_load(console: Console, quick: bool = False) -> dict[str, Any]:
         time.sleep(1.0)
         loads.append(os.getloadavg()[0])
     done.set()
+    results: dict[str, dict[str, Any]] = dict(answers.get(timeout=STOP_PROBE_TIMEOUT_S + 60.0) for _ in probes)
     for probe in probes:
         probe.join(STOP_PROBE_TIMEOUT_S + 5.0)
     output = (load.stdout.read() if load.stdout is not None else "").strip().splitlines()
     _settle(console)
-    listener_figures = results["listener"]
+    listener_figures, tablet_figures = results["listener"], results["listener_from_a_tablet"]
     return {
         "load": {
             "seconds": load_s, "concurrent_clients": clients, "exporters": 2, "uploaders": 1,
@@ -324,12 +372,14 @@ def stop_under_load(console: Console, quick: bool = False) -> dict[str, Any]:
             "load_average_1min_start_max_end": [round(loads[0], 1), round(max(loads), 1), round(loads[-1], 1)],
         },
         "stop_listener": listener_figures,
+        "stop_listener_from_a_tablet": tablet_figures,
         "old_web_route": results["old_web_route"],
         "targets": {
             "listener_p99_ms <= 50": (listener_figures["confirmed_p99_ms"] or 1e9) <= 50.0,
             "listener_max_ms <= 200": (listener_figures["confirmed_max_ms"] or 1e9) <= 200.0,
-            "no_503_while_the_daemon_lives": "503" not in listener_figures["answers"]
-            and "503" not in results["old_web_route"]["answers"],
+            "listener_from_a_tablet_p99_ms <= 50": (tablet_figures["confirmed_p99_ms"] or 1e9) <= 50.0,
+            "listener_from_a_tablet_max_ms <= 200": (tablet_figures["confirmed_max_ms"] or 1e9) <= 200.0,
+            "no_503_while_the_daemon_lives": all("503" not in figures["answers"] for figures in results.values()),
         },
     }  # fmt: skip
 

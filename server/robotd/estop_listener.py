@@ -25,7 +25,9 @@ import errno
 import http.server
 import json
 import logging
+import logging.handlers
 import os
+import queue
 import signal
 import threading
 import time
@@ -256,7 +258,6 @@ def serve(settings: Settings, robot: str, parent_pid: int | None = None) -> int:
     _end_with_parent()
     if parent_pid is not None and os.getppid() != parent_pid:
         return 1  # the daemon died before the death signal was armed
-    prioritise_liveness_thread("the emergency-stop listener")
     paths = RobotPaths(settings.data_dir.resolve(), robot)
     listener = StopListener(settings, paths)
     listener.blocks.current()  # attach now, not inside the first stop
@@ -272,14 +273,51 @@ def serve(settings: Settings, robot: str, parent_pid: int | None = None) -> int:
     return 0
 
 
+LOG_QUEUE_RECORDS = 10_000  # beyond this, while the log cannot be written, lines are dropped, never stops
+LOG_FLUSH_AT_EXIT_S = 2.0
+
+
+class _DroppingQueueHandler(logging.handlers.QueueHandler):
+    def enqueue(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(queue.Full):
+            self.queue.put_nowait(record)
+
+
+def _log_off_the_stop_path() -> logging.handlers.QueueListener:
+    """SCHED_FIFO for the listener, and its log lines written by a thread of their own. A write to the log
+    file can wait for the disk (dirty-page throttling while large exports are written: a stop took 250–350
+    ms), and the request handler logs before it answers; the stop's answer must not wait for it. The writer
+    starts after the priority is set, so it inherits it: a normal-priority thread that a busy machine
+    preempts while it holds the interpreter lock would hold up the stop's thread (priority inversion)."""
+    records: queue.Queue[logging.LogRecord] = queue.Queue(LOG_QUEUE_RECORDS)
+    writer = logging.StreamHandler()
+    writer.setFormatter(logging.Formatter("%(asctime)s estop %(levelname)s [%(name)s] %(message)s"))
+    queued = _DroppingQueueHandler(records)
+    queued.setFormatter(logging.Formatter("%(message)s"))  # the message only: the writer adds the rest
+    logging.basicConfig(level=logging.INFO, handlers=[queued])
+    prioritise_liveness_thread("the emergency-stop listener")  # every thread started after this inherits it
+    written = logging.handlers.QueueListener(records, writer)
+    written.start()
+    return written
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description="The emergency-stop listener of one robot daemon.")
     parser.add_argument("--robot", required=True)
     parser.add_argument("--data-dir", required=True, type=Path)
     parser.add_argument("--parent-pid", type=int, default=None)
     arguments = parser.parse_args()
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s estop %(levelname)s [%(name)s] %(message)s")
-    return serve(Settings(data_dir=arguments.data_dir), arguments.robot, arguments.parent_pid)
+    written = _log_off_the_stop_path()
+    code = 1
+    try:
+        code = serve(Settings(data_dir=arguments.data_dir), arguments.robot, arguments.parent_pid)
+    finally:  # the last lines, unless the log still cannot be written: then the listener ends without them
+        flush = threading.Thread(target=written.stop, daemon=True)
+        flush.start()
+        flush.join(LOG_FLUSH_AT_EXIT_S)
+        if flush.is_alive():
+            os._exit(code)  # logging's own shutdown would wait for the stuck write
+    return code
 
 
 if __name__ == "__main__":
