@@ -11,8 +11,9 @@ failed write, with every sample kept (`full_disk`; alone: `python -m benchmarks.
 Issue 20 (`stop_under_load`): the page's stop (the robot's stop listener) from the request to the
 confirmed latch, p50/p99/max, while the web process builds large exports, takes ~4 MiB CSV cue uploads and
 serves many concurrent clients (benchmarks/loopback_load.py, a process of its own), with the load average,
-against the old path (`POST /api/v1/estop`, through the web process) probed in the same run. Target:
-p99 ≤ 50 ms and max ≤ 200 ms, and no 503 while the daemon lives. Alone:
+against the old path (`POST /api/v1/estop`, through the web process) probed in the same run. The listener is
+probed by a normal-priority requester and by one at SCHED_FIFO (a tablet whose CPU no one else uses), each a
+process of its own. Target: p99 ≤ 50 ms and max ≤ 200 ms, and no 503 while the daemon lives. Alone:
 `python -m benchmarks.bench_faults --stop-under-load [--quick] [--write-results]`.
 """
 
