@@ -198,6 +198,10 @@ class ThreeBrowsers:
         return dict(httpx.get(f"{self.base_url}/api/v1/viz", headers=_bearer(self.tokens[name])).json())
 
 
+# What a browser's view shows does not depend on the database; each of these takes ~16 s of viser traffic.
+ONE_DATABASE = pytest.mark.parametrize("migrated", ["sqlite"], indirect=True)
+
+
 @pytest.fixture
 def three_browsers(settings: Settings, database: Database, view: LiveView) -> Iterator[ThreeBrowsers]:
     app = create_app(settings, database=database, worker=None)
@@ -211,6 +215,7 @@ def three_browsers(settings: Settings, database: Database, view: LiveView) -> It
                 browser.close()
 
 
+@ONE_DATABASE
 def test_the_engineering_switch_shows_visers_panel_in_that_browser_only(three_browsers: ThreeBrowsers) -> None:
     """The therapist's tablet turns the switch on: the wall screen (the same account, another login) and
     another therapist keep the panel minimized, also when they reload; the tablet's reload shows it again."""
@@ -250,6 +255,7 @@ def _looks_from(browsers: dict[str, ViserBrowser]) -> dict[str, str | None]:
     return {name: preset_at(browser.camera, 1e-6) for name, browser in browsers.items()}
 
 
+@ONE_DATABASE
 def test_a_camera_preset_moves_the_camera_of_that_browser_only(three_browsers: ThreeBrowsers) -> None:
     """The therapist's tablet looks from the front: the wall screen (the same account, another login) and a
     colleague keep the overview, also when they reload; the tablet's reload looks from the front again."""
