@@ -319,6 +319,7 @@ def _probe_stops(
         "handshake_max_ms": round(max(connected), 2) if connected else None,
         # The slowest stop, split: handshake, then the listener's accept, handler and answer.
         "slowest_handshake_ms": round(connected[int(np.argmax(confirmed))], 2) if confirmed else None,
+        "slowest_index": int(np.argmax(confirmed)) if confirmed else None,  # which of the confirmed stops
     }))  # fmt: skip
 
 

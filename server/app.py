@@ -58,9 +58,8 @@ from server.robotd.interfaces import RobotLink
 from server.robotd.link import DaemonLink, LocalLink, attach_robot
 from server.robotd.plan_store import PlanStore
 from server.robotd.planner import InlinePlanner
-from server.robotd.process import daemon_running
 from server.robotd.recovery import recover_open_runs
-from server.robotd.status import RobotPaths
+from server.robotd.status import RobotPaths, daemon_running
 from server.security import (
     CSRF_HEADER,
     CSRFMiddleware,

@@ -36,10 +36,13 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from server.realtime.shm import ControlBlock, Seqlock
+# Imported at start, not at the first stop: an import holds the interpreter lock for most of a second
+# (server.messages), and a second stop arriving meanwhile waited for it (bench faults: 250–370 ms).
+from server.messages import AuditListenerStop, exchange
+from server.realtime.shm import ControlBlock, Seqlock, load_kernels
 from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd import estop
-from server.robotd.status import RobotPaths, prioritise_liveness_thread
+from server.robotd.status import RobotPaths, daemon_running, prioritise_liveness_thread
 from server.settings import Settings
 
 log = logging.getLogger("ssp_rehab.estop_listener")
@@ -123,6 +126,7 @@ class OriginCheck:
 class StopListener:
     def __init__(self, settings: Settings, paths: RobotPaths) -> None:
         self.settings, self.paths = settings, paths
+        load_kernels()  # the worker's blocks are attached later, often after this start: not in a stop
         self.blocks = WorkerBlocks(paths)
         self.origins = OriginCheck(settings)
         self.timeout_s = estop.ESTOP_CONFIRM_TIMEOUT_S
@@ -136,8 +140,6 @@ class StopListener:
             sequence = estop.request_stop(control, state)
             if estop.wait_latched(state, sequence, self.timeout_s):
                 return estop.confirmed(started_ns)
-        from server.robotd.process import daemon_running
-
         return estop.unconfirmed(
             daemon_running(self.paths),
             blocks[0] if blocks is not None else None,
@@ -147,8 +149,6 @@ class StopListener:
 
     def audit(self, token: str | None, answer: estop.StopAnswer) -> None:
         """Who asked, checked and recorded by the daemon (it ends the run too), after the answer."""
-        from server.messages import AuditListenerStop, exchange
-
         try:
             exchange(
                 str(self.paths.socket), AuditListenerStop(token=token, outcome=answer.outcome.value), AUDIT_TIMEOUT_S
@@ -165,6 +165,9 @@ def _handler(listener: StopListener) -> type[http.server.BaseHTTPRequestHandler]
     class Handler(http.server.BaseHTTPRequestHandler):
         server_version = "ssp-rehab-estop"
         sys_version = ""
+        # TCP_NODELAY: the answer's headers and body are two writes; with Nagle's algorithm the body would
+        # wait for the requester's delayed acknowledgement of the headers (40–200 ms on Linux).
+        disable_nagle_algorithm = True
 
         def do_POST(self) -> None:
             if urlsplit(self.path).path.rstrip("/") != STOP_PATH:

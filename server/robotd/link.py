@@ -40,6 +40,7 @@ from server.robotd.status import (
     RobotPaths,
     RobotStatus,
     StatusBlock,
+    daemon_running,
     prioritise_liveness_thread,
 )
 from server.settings import Settings
@@ -62,7 +63,6 @@ ANOTHER_CONSOLES_DAEMON = "the robot daemon is starting (started by another web 
 
 class DaemonLink:
     """One web process's link to the daemon of `paths.robot` (started by `ensure_daemon` if need be)."""
-
     def __init__(
         self,
         paths: RobotPaths,
@@ -123,8 +123,6 @@ class DaemonLink:
 
     def unconfirmed_stop(self) -> StopAnswer:
         """The truthful answer for a stop the worker did not confirm: gone, not started, or slow."""
-        from server.robotd.process import daemon_running
-
         why = f"robot {self.robot!r}: {self.status(COMMAND_STALE_S).reason}"
         return estop.unconfirmed(daemon_running(self.paths), self._control, why, ESTOP_CONFIRM_TIMEOUT_S)
 
@@ -137,15 +135,12 @@ class DaemonLink:
             # Never "no robot" while the daemon this process started warms up (before its first link).
             if spawned is not None and not self._linked_since_spawn and spawned.poll() is None:
                 return RobotStatus(DaemonState.STARTING, self._starting_reason, spawned.pid)
-            if not self._linked_since_spawn:
-                # Not linked yet, but a daemon holds the robot's lock: another console's (several web
-                # processes starting at once each spawn one; the lock admits one), still warming up.
-                from server.robotd.process import daemon_running
-
-                if daemon_running(self.paths):
-                    pid_file = PidFile.read(self.paths)
-                    pid = pid_file.pid if pid_file is not None else None
-                    return RobotStatus(DaemonState.STARTING, ANOTHER_CONSOLES_DAEMON, pid)
+            # Not linked yet, but a daemon holds the robot's lock: another console's (several web processes
+            # starting at once each spawn one; the lock admits one), still warming up.
+            if not self._linked_since_spawn and daemon_running(self.paths):
+                pid_file = PidFile.read(self.paths)
+                pid = pid_file.pid if pid_file is not None else None
+                return RobotStatus(DaemonState.STARTING, ANOTHER_CONSOLES_DAEMON, pid)
             return RobotStatus(DaemonState.ABSENT, "no robot daemon runs for this robot")
         return self._status.read(stale_s)
 
@@ -255,7 +250,6 @@ class DaemonLink:
     def _restart_if_absent(self) -> None:
         """A daemon that died (kill -9, a crash) is started again, at most every RESPAWN_PERIOD_S: it
         closes the run it left open as interrupted, and the robot is free again."""
-        from server.robotd.process import daemon_running
 
         if not self.restart_absent or time.monotonic() - self._last_spawn_s < RESPAWN_PERIOD_S:
             return
@@ -338,8 +332,6 @@ class DaemonLink:
     def _settle_spawned(self) -> None:
         """A daemon this process started that has not taken the robot's lock yet (still importing) is waited
         for until it takes it or exits: the console that started it then finds it, to stop it or leave it."""
-        from server.robotd.process import daemon_running
-
         spawned = self._spawned
         deadline = time.monotonic() + DAEMON_LOCK_WAIT_S
         while spawned is not None and spawned.poll() is None and time.monotonic() < deadline:
@@ -350,7 +342,6 @@ class DaemonLink:
 
 class LocalLink:
     """The same interface to a `RobotDaemon` in this process (tests: an in-memory worker, a test database)."""
-
     def __init__(self, daemon: RobotDaemon) -> None:
         self.daemon = daemon
         self.robot = daemon.robot
@@ -455,8 +446,6 @@ def spawn_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -
 
 def ensure_daemon(paths: RobotPaths, environment: dict[str, str] | None = None) -> subprocess.Popen[bytes] | None:
     """Start the robot's daemon unless one runs; the process if this call started it."""
-    from server.robotd.process import daemon_running
-
     if daemon_running(paths):
         return None
     return spawn_daemon(paths, environment)
@@ -471,7 +460,6 @@ class DaemonEnd:
 def running_daemon(paths: RobotPaths) -> PidFile | None:
     """The pid file of the daemon holding the robot's lock, or None when none holds it. A daemon writes its
     pid file just after taking the lock: that moment is waited out."""
-    from server.robotd.process import daemon_running
 
     deadline = time.monotonic() + DAEMON_LOCK_WAIT_S
     while daemon_running(paths):
@@ -487,7 +475,6 @@ def running_daemon(paths: RobotPaths) -> PidFile | None:
 def stop_daemon(paths: RobotPaths, daemon: PidFile, timeout_s: float = DAEMON_STOP_TIMEOUT_S) -> DaemonEnd:
     """SIGTERM, as systemd stops it: its shutdown interrupts a run in motion with a controlled stop and
     flushes the records, then it removes its pid file and releases the lock. Waits for that."""
-    from server.robotd.process import daemon_running
 
     with contextlib.suppress(ProcessLookupError):
         os.kill(daemon.pid, signal.SIGTERM)

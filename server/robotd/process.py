@@ -97,20 +97,6 @@ def take_lock(paths: RobotPaths) -> int:
     return descriptor
 
 
-def daemon_running(paths: RobotPaths) -> bool:
-    """True while some process holds the robot's lock."""
-    if not paths.lock.exists():
-        return False
-    descriptor = os.open(paths.lock, os.O_RDWR)
-    try:
-        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    finally:
-        os.close(descriptor)  # closing drops a lock taken here
-    return False
-
-
 class RobotDaemonProcess:
     def __init__(self, settings: Settings, robot: str, started_by: str | None = None) -> None:
         self.settings = settings

@@ -4,6 +4,7 @@ record it publishes in shared memory every 20 ms, which web processes read witho
 from __future__ import annotations
 
 import enum
+import fcntl
 import logging
 import os
 import re
@@ -199,3 +200,17 @@ class StatusBlock:
 
     def close(self) -> None:
         self.seqlock.close()
+
+
+def daemon_running(paths: RobotPaths) -> bool:
+    """True while some process holds the robot's lock."""
+    if not paths.lock.exists():
+        return False
+    descriptor = os.open(paths.lock, os.O_RDWR)
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(descriptor)  # closing drops a lock taken here
+    return False

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from server.realtime.shm import ControlBlock
+from server.realtime.shm import ControlBlock, Seqlock
 from server.robotd import estop
 from server.robotd.estop_listener import OriginCheck, address_file, page_stop_url
 from server.robotd.status import RobotPaths
@@ -109,3 +109,45 @@ def test_a_stop_is_answered_while_the_listeners_log_cannot_be_written(tmp_path: 
         listener.kill()
         listener.wait()
         os.close(read_end)
+
+
+def test_a_stop_and_its_audit_load_nothing(tmp_path: Path) -> None:
+    """Found by `bench faults --stop-under-load`: the first stop of every run took 210–370 ms, the others 4 ms.
+    The listener starts before the worker, so it attached the worker's blocks inside its first stop, and
+    attaching loaded their compiled kernels (200 ms); the first stop's audit imported the daemon's message
+    module (most of a second holding the interpreter lock: a stop arriving meanwhile waited); an
+    unconfirmed stop imported the daemon's process module before it answered. Here the worker's blocks
+    appear after the listener is built, as they do: its first stop and audit import and load nothing."""
+    from server.realtime.telemetry import TELEMETRY_DTYPE
+
+    paths = RobotPaths(tmp_path, "twin-1")
+    paths.directory.mkdir(parents=True)
+    probe = f"""
+import sys, time
+from pathlib import Path
+from server.realtime import shm
+from server.robotd.estop_listener import StopListener
+from server.robotd.status import RobotPaths
+from server.settings import Settings
+listener = StopListener(Settings(data_dir=Path({str(tmp_path)!r})), RobotPaths(Path({str(tmp_path)!r}), "twin-1"))
+print("built", flush=True)
+sys.stdin.readline()  # the worker's blocks exist now
+kernels = (shm.memory_barrier, shm._seqlock_try_read, shm._seqlock_write)
+modules, loaded = set(sys.modules), [len(kernel.signatures) for kernel in kernels]
+answer = listener.stop()  # attaches the blocks, latches; no worker confirms and no daemon runs
+listener.audit(None, answer)  # no daemon to record it: logged
+print(answer.outcome.name, sorted(set(sys.modules) - modules), loaded == [len(k.signatures) for k in kernels])
+"""
+    listener = subprocess.Popen([sys.executable, "-c", probe], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)  # fmt: skip
+    control, state = ControlBlock(), Seqlock(TELEMETRY_DTYPE)
+    try:
+        assert listener.stdout is not None and listener.stdout.readline() == "built\n", listener.stderr
+        paths.shared_memory.write_text(f"status-block {control.name} {state.name}\n")  # as the daemon lists them
+        out, err = listener.communicate("go\n", timeout=120)
+        assert listener.returncode == 0, err
+        assert out == "NO_DAEMON [] True\n", out
+    finally:
+        listener.kill()
+        control.close()
+        state.close()

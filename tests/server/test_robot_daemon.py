@@ -18,9 +18,9 @@ from server.db import Database
 from server.realtime.telemetry import TELEMETRY_DTYPE
 from server.robotd.journal import RunJournal, read_journal
 from server.robotd.models import SessionEvent, SessionRun, TelemetryChunk
-from server.robotd.process import AlreadyRunning, daemon_running, take_lock
+from server.robotd.process import AlreadyRunning, take_lock
 from server.robotd.recovery import recover_open_runs
-from server.robotd.status import DAEMON_STALE_S, DaemonState, RobotPaths, StatusBlock
+from server.robotd.status import DAEMON_STALE_S, DaemonState, RobotPaths, StatusBlock, daemon_running
 from tests.server.conftest import FakeWorker, Seed, booked_session, wait_until
 
 

@@ -14,9 +14,8 @@ from sqlalchemy import text
 
 from benchmarks.fault_harness import EVENT_TIMEOUT_S, Console, alive, wait_for
 from server.realtime.telemetry import SupervisorState
-from server.robotd.process import daemon_running
 from server.robotd.records import decode_chunk
-from server.robotd.status import RobotPaths
+from server.robotd.status import RobotPaths, daemon_running
 
 pytestmark = pytest.mark.slow
 
