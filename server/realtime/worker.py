@@ -66,6 +66,8 @@ class Worker:
         self.state = Seqlock(TELEMETRY_DTYPE, config.state_name)
         self.telemetry = SharedRing(TELEMETRY_DTYPE, config.telemetry_capacity, config.telemetry_name)
         self.events = SharedRing(EVENT_DTYPE, config.events_capacity, config.events_name)
+        for ring in (self.telemetry, self.events):
+            ring.prepare_to_produce()
         self.twin = load_twin(config.twin_path) if config.twin_path else default_twin()
         self.supervisor_config = SupervisorConfig.from_dict(config.supervisor)
         compile_tick_path(self.twin, config.control_rate_hz, self.supervisor_config)

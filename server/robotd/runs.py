@@ -162,14 +162,7 @@ def record_start(
         clock=clock,
         details={"prescription_version_id": version_id},
     )
-    audit.record(
-        session=session,
-        user_id=actor_id,
-        action="motion",
-        resource_type="session_run",
-        resource_id=run.id,
-        details={"command": "start", "patient_id": patient_id},
-    )
+    _audit_motion(session, actor_id, run.id, "start", patient_id=patient_id)
     return run
 
 
@@ -202,12 +195,24 @@ def record_command(
         run.state = TRANSITIONS[command][1].value
     details = {"credential": credential} if credential else None
     add_event(session=session, run_id=run.id, kind=command, user_id=actor_id, clock=clock, details=details, utc=at)
-    _audit_motion(session, actor_id, run.id, command, credential)
+    _audit_motion(session, actor_id, run.id, command, credential=credential)
     return run
 
 
-def _audit_motion(session: Session, actor_id: int | None, run_id: int, command: str, credential: str | None) -> None:
-    details = {"command": command, **({"credential": credential} if credential else {})}
+def _audit_motion(
+    session: Session,
+    actor_id: int | None,
+    run_id: int,
+    command: str,
+    *,
+    credential: str | None = None,
+    patient_id: int | None = None,
+) -> None:
+    details: dict[str, object] = {"command": command}
+    if patient_id is not None:
+        details["patient_id"] = patient_id
+    if credential:
+        details["credential"] = credential
     audit.record(
         session=session,
         user_id=actor_id,
@@ -247,7 +252,7 @@ def end_run(
         add_event(
             session=session, run_id=run.id, kind="stop", user_id=stopped_by_id, clock=clock, utc=at, details=details
         )
-        _audit_motion(session, stopped_by_id, run.id, "stop", credential)
+        _audit_motion(session, stopped_by_id, run.id, "stop", credential=credential)
     add_event(
         session=session,
         run_id=run.id,
