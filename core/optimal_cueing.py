@@ -42,9 +42,8 @@ import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import control
 import numpy as np
 import osqp
 import scipy.sparse as sp
@@ -62,6 +61,9 @@ from core.perception import DEFAULT_HEAD_HEIGHT_M, head_angular_velocity, head_s
 from core.robot import MotionLimits, SSPRobot, TwinRobot
 from core.shaping import ParameterError, require_finite
 from core.vestibular import VestibularModel, VestibularParameters
+
+if TYPE_CHECKING:
+    import control
 
 # Stance poses (N, 6) → minimum collision clearance (N,) m; by default the twin's parts (core.clearance).
 ClearanceFunction = Callable[[np.ndarray], np.ndarray]
@@ -308,6 +310,8 @@ class _StateSpace:
 
 def _perception_state_space(systems: list[control.TransferFunction], period: float) -> _StateSpace:
     """Block-diagonal discrete (Tustin) state space of one transfer function per axis."""
+    import control  # here: it loads matplotlib and scipy.signal (core.vestibular)
+
     blocks = [control.sample_system(control.ss(system), period, method="tustin") for system in systems]
     return _StateSpace(
         a=np.asarray(sp.block_diag([b.A for b in blocks]).toarray()),

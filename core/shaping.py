@@ -20,7 +20,6 @@ from typing import Any, overload
 
 import numba
 import numpy as np
-import scipy.signal
 
 from core.errors import InvalidValueError
 
@@ -123,6 +122,8 @@ def filter_sections(sos: np.ndarray, signals: np.ndarray, state: Any = _FROM_RES
     given `state` (S, ..., 2) (None = rest), returns (filtered, final state) so that a long signal can be
     filtered chunk by chunk. `sos` (P, S, 6) gives each of the P leading rows of `signals` (P, ..., N)
     its own design, from rest, and runs the compiled kernel over rows in parallel (populations)."""
+    import scipy.signal  # here: the processes that only validate a prescription never load it
+
     sos = np.asarray(sos, dtype=float)
     if sos.ndim == 2:
         filtered = np.asarray(signals, dtype=float)
@@ -190,6 +191,8 @@ class ShapingParameters:
 
 def shaping_sections(params: ShapingParameters, sample_period_s: float) -> np.ndarray:
     """The shaper's sos (S, 6) at this sample period; refuses a design that leaves the first mode exposed."""
+    import scipy.signal  # here: the processes that only validate a prescription never load it
+
     require_sample_period(sample_period_s)
     nyquist_hz = 0.5 / sample_period_s
     if not params.enabled:
@@ -217,6 +220,8 @@ def shaping_sections(params: ShapingParameters, sample_period_s: float) -> np.nd
 
 def attenuation_db(sos: np.ndarray, frequencies_hz: np.ndarray, sample_period_s: float) -> np.ndarray:
     """Attenuation (dB, positive = quieter) of a sos filter at the given frequencies."""
+    import scipy.signal  # here: the processes that only validate a prescription never load it
+
     _, response = scipy.signal.sosfreqz(sos, worN=np.asarray(frequencies_hz, dtype=float), fs=1.0 / sample_period_s)
     return -20.0 * np.log10(np.maximum(np.abs(response), 1e-300))
 

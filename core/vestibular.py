@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import control
 import numpy as np
-import scipy.signal
 
 from core.shaping import ParameterError, filter_sections, require_finite, require_positive, require_sample_period
+
+if TYPE_CHECKING:
+    import control
 
 AXES = ("x", "y", "z")
 ROTATION_AXES = ("roll", "pitch", "yaw")
@@ -101,6 +102,8 @@ class VestibularParameters:
 
 def otolith_transfer_function(params: OtolithParameters) -> control.TransferFunction:
     """Formula 14 as a continuous transfer function."""
+    import control  # here: python-control loads matplotlib and scipy.signal (1.3 s of CPU in each process)
+
     numerator = [params.gain * params.lead_time_constant_s, params.gain]
     denominator = np.polymul([params.long_time_constant_s, 1.0], [params.short_time_constant_s, 1.0])
     return control.tf(numerator, denominator)
@@ -108,6 +111,8 @@ def otolith_transfer_function(params: OtolithParameters) -> control.TransferFunc
 
 def canal_transfer_function(params: CanalParameters) -> control.TransferFunction:
     """Formula 15 as a continuous transfer function (T_s multiplies s: the `1/Tl*Ts` bug is Ts/Tl)."""
+    import control
+
     long_s, short_s, adaptation_s = (
         params.long_time_constant_s,
         params.short_time_constant_s,
@@ -118,6 +123,9 @@ def canal_transfer_function(params: CanalParameters) -> control.TransferFunction
 
 
 def _discrete_sections(system: control.TransferFunction, sample_period_s: float) -> np.ndarray:
+    import control
+    import scipy.signal
+
     discrete = control.sample_system(system, sample_period_s, method="tustin")
     numerator = np.asarray(discrete.num[0][0], dtype=float)
     denominator = np.asarray(discrete.den[0][0], dtype=float)

@@ -22,8 +22,8 @@ from typing import Any, ClassVar, Literal, NamedTuple
 import msgspec
 
 from core.errors import InvalidValueError
-from core.plan.check import PrescriptionRejected
 from core.plan.prescription import PrescriptionError
+from core.plan.rejection import PrescriptionRejected
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.jsonable import to_jsonable
 from server.realtime.supervisor import TransitionRefused

@@ -26,11 +26,12 @@ from core.falls import FallDetectorConfig
 from core.optimal_cueing import CueingWorkspace, OptimalCueingParameters, OptimalCueingPlanner
 from core.patient import PatientParameters
 from core.perception import head_height_m
-from core.plan.check import PrescriptionRejected, PrescriptionReport, check_plan
+from core.plan.check import PrescriptionReport, check_plan
 from core.plan.config import DEFAULT_CONTROL_RATE_HZ, PlanConfig
 from core.plan.limits import LimitOverrideError, SessionLimits
 from core.plan.motion import PLANNED_SHARE, PlannedMotion
 from core.plan.prescription import Prescription, PrescriptionBody, PrescriptionError, Segment, parse_prescription
+from core.plan.rejection import PrescriptionRejected
 from core.plan.timeline import segment_cue
 from core.robot import TwinRobot, twin_digest
 from core.shaping import CommandShaper, ParameterError, ShapingParameters

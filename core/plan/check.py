@@ -25,41 +25,12 @@ from core.kinematics import (
 from core.plan import motion
 from core.plan.limits import LIMIT_UNITS, LimitCode
 from core.plan.motion import JOIN_SAMPLES, TIMELINE_SHARE, Transition, state_of
+from core.plan.rejection import PrescriptionRejected
 from core.plan.timeline import finite_differences
 from core.robot import TwinRobot
 
 if TYPE_CHECKING:
     from core.plan.build import PrescriptionPlan, SegmentPlan
-
-
-class PrescriptionRejected(ValueError):  # noqa: N818 — the agreed interface name
-    """The prescription would exceed a limit: where (segment, time in it) and which limit."""
-
-    def __init__(
-        self, segment: int, time_s: float, limit: str, value: float, message: str, details: dict[str, Any] | None = None
-    ) -> None:
-        self.segment, self.time_s, self.limit, self.value = segment, time_s, limit, value
-        # Beyond the first breach: every kinematic limit broken in the segment (by reason, with its stretches)
-        # and each robot's singularity report (worst cond(J) and when, every det J sign change).
-        self.details = details or {}
-        super().__init__(message)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> PrescriptionRejected:
-        """The inverse of `to_dict`, every field kept (across the planning process's and the worker's pipes)."""
-        fields = ("segment", "time_s", "limit", "value", "message")
-        details = {key: value for key, value in data.items() if key not in (*fields, "type")}
-        return cls(data["segment"], data["time_s"], data["limit"], data["value"], data["message"], details)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "segment": self.segment,
-            "time_s": self.time_s,
-            "limit": self.limit,
-            "value": self.value,
-            "message": str(self),
-            **self.details,
-        }
 
 
 @dataclass(frozen=True)

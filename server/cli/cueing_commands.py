@@ -151,8 +151,9 @@ def evaluate(prescription: dict[str, Any], twin: TwinRobot, cueing: str, patient
 
     from core.perception import DEFAULT_HEAD_HEIGHT_M, head_height_m
     from core.plan.build import plan_prescription
-    from core.plan.check import PrescriptionRejected, check_plan
+    from core.plan.check import check_plan
     from core.plan.prescription import PrescriptionError
+    from core.plan.rejection import PrescriptionRejected
     from core.plan.timeline import prescription_timeline
     from core.vestibular import PerceptionThresholds, VestibularModel
     from server.prescriptions.preview import perceived_at_head

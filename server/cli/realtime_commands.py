@@ -50,9 +50,9 @@ def check(
 ) -> None:
     """Run a prescription offline through the batch pipeline; refuse it if any limit would be exceeded."""
     from core.plan.build import check_prescription
-    from core.plan.check import PrescriptionRejected
     from core.plan.config import DEFAULT_CONTROL_RATE_HZ
     from core.plan.prescription import PrescriptionError
+    from core.plan.rejection import PrescriptionRejected
     from server.realtime.loop import LoopConfigError, validate_control_rate
 
     prescription = _read_json(prescription_file, "prescription_file", as_json)
@@ -85,9 +85,9 @@ def run(
     """Spawn a worker, play the prescription, stop it, and report tick timing and events."""
     import numpy as np
 
-    from core.plan.check import PrescriptionRejected
     from core.plan.config import DEFAULT_CONTROL_RATE_HZ
     from core.plan.prescription import PrescriptionError
+    from core.plan.rejection import PrescriptionRejected
     from server.messages import CommandRefused
     from server.realtime.client import WorkerClient, WorkerError
     from server.realtime.loop import LoopConfigError
@@ -150,9 +150,9 @@ def plan(
     --data-dir the checked plan is stored where that console's robot daemon plays it from."""
     import resource
 
-    from core.plan.check import PrescriptionRejected
     from core.plan.config import DEFAULT_CONTROL_RATE_HZ
     from core.plan.prescription import PrescriptionError
+    from core.plan.rejection import PrescriptionRejected
     from core.robot import twin_digest
     from server.realtime.loop import LoopConfigError, validate_control_rate
     from server.realtime.supervisor import SupervisorConfig

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from core.plan.build import PrescriptionPlan
-from core.plan.check import PrescriptionRejected
 from core.plan.prescription import PrescriptionError
+from core.plan.rejection import PrescriptionRejected
 from core.robot import TwinRobot, twin_digest
 from server.db import Database
 from server.errors import ConflictError, WorkerUnavailableError

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from core.plan.build import check_prescription
-from core.plan.check import PrescriptionRejected
 from core.plan.limits import LimitCode
+from core.plan.rejection import PrescriptionRejected
 from core.robot import TwinRobot, named_twin, symmetric_placements
 from core.twin_kernels import VIOLATION_FIELDS, TwinKernels
 from server.realtime.pipeline import start_along_checked_approach

@@ -10,8 +10,8 @@ import msgspec
 import pytest
 
 from core.errors import InvalidValueError
-from core.plan.check import PrescriptionRejected
 from core.plan.prescription import PrescriptionError
+from core.plan.rejection import PrescriptionRejected
 from server.errors import ConflictError, InvalidFieldError, NotFoundError, WorkerUnavailableError
 from server.messages import (
     REFUSAL_KINDS,

@@ -14,8 +14,9 @@ from core.optimal_cueing import CueingWorkspace
 from core.perception import tilt_rate_check
 from core.physics import GRAVITY_M_S2
 from core.plan.build import check_prescription, plan_prescription
-from core.plan.check import PrescriptionRejected, check_plan
+from core.plan.check import check_plan
 from core.plan.prescription import PrescriptionError
+from core.plan.rejection import PrescriptionRejected
 from core.robot import TwinRobot, default_twin
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline, start_along_checked_approach

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from core.plan.build import CheckedPlan, build_plan
-from core.plan.check import PrescriptionRejected, checked_approach, checked_pause, checked_resume
+from core.plan.check import checked_approach, checked_pause, checked_resume
+from core.plan.rejection import PrescriptionRejected
 from core.robot import TwinRobot
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline

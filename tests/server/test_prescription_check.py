@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from core.plan.build import check_prescription, plan_prescription
-from core.plan.check import PrescriptionRejected
 from core.plan.prescription import PrescriptionError
+from core.plan.rejection import PrescriptionRejected
 from core.robot import TwinRobot
 from server.hal.kinematic import KinematicHal
 from server.realtime.pipeline import TickPipeline, start_along_checked_approach

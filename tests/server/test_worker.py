@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from benchmarks.fault_harness import wait_for
-from core.plan.check import PrescriptionRejected
+from core.plan.rejection import PrescriptionRejected
 from server.realtime.client import WorkerClient
 from server.realtime.loop import FixedRateLoop, LoopConfigError
 from server.realtime.shm import Seqlock, SharedRing
