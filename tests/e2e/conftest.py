@@ -304,9 +304,27 @@ def turn_engineering_on(page: Any) -> None:
     expect(page.get_by_label("Engineering details")).to_be_checked()
 
 
+ROBOT_RESET_TIMEOUT_S = 60.0
+
+
+def reset_latched_stop(clinic: dict[str, Any]) -> None:
+    """Clears a latched emergency stop so that the next test finds a startable robot (a reset never moves it)."""
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    deadline = time.monotonic() + ROBOT_RESET_TIMEOUT_S
+    while time.monotonic() < deadline:
+        state = httpx.get(f"{clinic['api']}/robot/state", headers=headers, timeout=30).json()
+        if not state.get("estop_latched") and state.get("state") != "estop":
+            return
+        httpx.post(f"{clinic['api']}/robot/reset", headers=headers, timeout=30)
+        time.sleep(0.5)
+    raise AssertionError(f"the robot did not leave its emergency stop within {ROBOT_RESET_TIMEOUT_S} s")
+
+
 def acknowledge_earlier_stop(clinic: dict[str, Any]) -> None:
-    """An earlier browser test's run on the shared robot may have ended with a stop that waits for an
-    acknowledgement, which keeps Start disabled: acknowledge it, as its therapist would."""
+    """An earlier browser test's run on the shared robot may have ended with a stop: its latch is reset and the
+    stop, which keeps Start disabled until then, acknowledged, as its therapist would. A test that failed
+    midway then leaves the next one a startable robot."""
+    reset_latched_stop(clinic)
     headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
     with httpx.Client(base_url=clinic["api"], headers=headers, timeout=60) as api:
         leftover = api.get("/reviews/pending", params={"robot": "twin-1"}).json()

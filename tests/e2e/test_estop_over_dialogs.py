@@ -9,10 +9,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import httpx
 import pytest
 
-from tests.e2e.conftest import acknowledge_earlier_stop
+from tests.e2e.conftest import acknowledge_earlier_stop, reset_latched_stop
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -20,7 +19,6 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 expect = playwright_api.expect
 
 STOP_ANSWER_TIMEOUT_MS = 90_000  # the stop answers within a second; a starved renderer (software WebGL) is slow to act
-RESET_TIMEOUT_S = 60.0
 TAB_PRESSES = 30
 
 ESTOP_REACHABLE_JS = """() => {
@@ -70,19 +68,6 @@ DIALOGS = {
 }
 
 
-def _reset_robot(clinic: dict[str, Any]) -> None:
-    """Clears the latched stop so that the next test finds a startable robot (a reset never moves it)."""
-    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
-    deadline = time.monotonic() + RESET_TIMEOUT_S
-    while time.monotonic() < deadline:
-        state = httpx.get(f"{clinic['api']}/robot/state", headers=headers, timeout=30).json()
-        if not state.get("estop_latched") and state.get("state") != "estop":
-            return
-        httpx.post(f"{clinic['api']}/robot/reset", headers=headers, timeout=30)
-        time.sleep(0.5)
-    raise AssertionError(f"the robot did not leave its emergency stop within {RESET_TIMEOUT_S} s")
-
-
 def _is_stop_request(response: Any) -> bool:
     return response.request.method == "POST" and response.url.split("?")[0].endswith("/estop")
 
@@ -114,7 +99,7 @@ def test_estop_over_every_dialog(console: Any, clinic: dict[str, Any], dialog: s
             page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
         assert stop.value.status == 200, f"{dialog}: the stop answered {stop.value.status}: {stop.value.text()}"
         expect(page.locator('.banner.error[data-key="estop"]')).to_be_visible()
-        _reset_robot(clinic)
+        reset_latched_stop(clinic)
 
         # Escape stops too, with the dialog still open (a click on the button may have left it open).
         if page.locator("dialog[open]").count() == 0:
@@ -124,4 +109,4 @@ def test_estop_over_every_dialog(console: Any, clinic: dict[str, Any], dialog: s
             page.keyboard.press("Escape")
         assert stop.value.status == 200, f"{dialog}: Escape's stop answered {stop.value.status}"
     finally:
-        _reset_robot(clinic)
+        reset_latched_stop(clinic)

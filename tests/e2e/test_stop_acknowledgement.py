@@ -68,8 +68,8 @@ def test_after_an_estop_and_a_reset_the_stop_is_acknowledged_before_the_next_sta
     _click(page.locator("#estop"))
     estop_banner = page.locator('.banner.error[data-key="estop"]')
     robot_banner = page.locator('.banner.error[data-key="robot-alert"]')
-    expect(estop_banner).to_be_visible(timeout=15_000)
-    expect(robot_banner).to_be_visible(timeout=15_000)
+    expect(estop_banner).to_be_visible(timeout=60_000)  # the stop's answer, on a page a loaded machine starves
+    expect(robot_banner).to_be_visible(timeout=60_000)
     expect(page.locator("#run-state")).to_have_attribute("data-state", "emergency_stop", timeout=30_000)
 
     # The header and two red banners shown: "Reset robot" is still on screen without scrolling.
