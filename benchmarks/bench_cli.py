@@ -54,12 +54,16 @@ def _run(arguments: list[str], preload: tuple[str, ...]) -> tuple[float, float]:
     return cpu_s, wall_s
 
 
-def _median(arguments: list[str], preload: tuple[str, ...], repeats: int) -> dict[str, float]:
-    runs = [_run(arguments, preload) for _ in range(repeats)]
+def median_cpu_and_wall(runs: list[tuple[float, float]]) -> dict[str, float]:
+    """The medians of (CPU s, wall s) runs."""
     return {
         "cpu_s": round(statistics.median(cpu for cpu, _ in runs), 3),
         "wall_s": round(statistics.median(wall for _, wall in runs), 3),
     }
+
+
+def _median(arguments: list[str], preload: tuple[str, ...], repeats: int) -> dict[str, float]:
+    return median_cpu_and_wall([_run(arguments, preload) for _ in range(repeats)])
 
 
 def run(quick: bool = False) -> dict[str, Any]:

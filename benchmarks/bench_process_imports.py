@@ -10,13 +10,12 @@ of REPEATS fresh interpreters; CPU is user + system of the child, from `resource
 from __future__ import annotations
 
 import os
-import statistics
 import subprocess
 import sys
 import time
 from typing import Any
 
-from benchmarks.bench_cli import _child_cpu_s
+from benchmarks.bench_cli import _child_cpu_s, median_cpu_and_wall
 
 REPEATS = 5
 PROCESSES = {
@@ -41,11 +40,7 @@ def _import(module: str, preload: tuple[str, ...]) -> tuple[float, float]:
 
 
 def _median(module: str, preload: tuple[str, ...], repeats: int) -> dict[str, float]:
-    runs = [_import(module, preload) for _ in range(repeats)]
-    return {
-        "cpu_s": round(statistics.median(cpu for cpu, _ in runs), 3),
-        "wall_s": round(statistics.median(wall for _, wall in runs), 3),
-    }
+    return median_cpu_and_wall([_import(module, preload) for _ in range(repeats)])
 
 
 def run(quick: bool = False) -> dict[str, Any]:
