@@ -100,7 +100,12 @@ window.addEventListener("ssp:unauthorised", () => {
 // visible, in red, with the reason and the next step in words (js/language.js) ---------------------------
 const robotStatus = document.getElementById("robot-status");
 let lastRobotLevel = null;
-function showRobot(state) {
+// When the state shown was taken: the 2 s poll's answer may arrive after a newer state pushed by the live
+// telemetry (a stop), and must not take the page back to it (it cleared the stop's banner and showed MOVING).
+let robotShownAt = 0;
+function showRobot(state, takenAt = performance.now()) {
+  if (takenAt < robotShownAt) return;
+  robotShownAt = takenAt;
   const shown = describeRobot(state);
   robotStatus.className = `robot-status ${shown.level}`;
   robotStatus.textContent = `Robot: ${shown.label}`;
@@ -128,7 +133,8 @@ window.addEventListener("ssp:acknowledged", () => showNextStep());
 async function pollRobot() {
   if (!user) { robotStatus.textContent = ""; robotStatus.className = "robot-status"; return; }
   try {
-    showRobot(await get("/robot/state"));
+    const asked = performance.now();
+    showRobot(await get("/robot/state"), asked);
   } catch (error) {
     if (error.status !== 503) {
       robotStatus.className = "robot-status bad";

@@ -5,7 +5,9 @@ at 1024×768 "Reset robot" is visible without scrolling while the header and two
 from __future__ import annotations
 
 import datetime as dt
+import json
 import re
+import time
 from typing import Any
 
 import httpx
@@ -132,4 +134,48 @@ def test_start_is_enabled_only_once_a_click_opens_the_checklist(console: Any, cl
     _click(dialog.get_by_role("button", name="Cancel"))
     expect(dialog).to_be_hidden()
     expect(page.locator("#run-state")).not_to_have_attribute("data-state", "running")
+    assert not session.errors, session.errors
+
+
+def test_a_robot_state_asked_before_the_stop_and_answered_after_it_does_not_undo_it(
+    console: Any, clinic: dict[str, Any]
+) -> None:
+    """CI failure, 2026-12-08: the page polls /robot/state every 2 s beside the live telemetry. A poll asked while
+    the run moved and answered after the telemetry had shown the emergency stop took the top bar back to MOVING
+    and cleared the stop's banner for good, while the robot was latched."""
+    booking = _book(clinic, hours_after_the_clinic_booking=7)
+    session = console(viewport=VIEWPORT)
+    session.context.route(re.compile(r"/api/v1/viz/view/"), lambda route: route.abort())
+    session.page.set_default_timeout(60_000)
+    page = session.login()
+    session.go(f"#/session/{booking['id']}")
+    start_button = page.locator("#start-button")
+    expect(start_button).to_be_enabled(timeout=30_000)
+    _click(start_button)
+    _confirm_checklist(page)
+    expect(page.locator("#run-state")).to_have_attribute("data-state", "running", timeout=120_000)
+    headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
+    moving = httpx.get(f"{clinic['api']}/robot/state", headers=headers, timeout=60).json()
+    assert moving["state"] == "running", moving
+
+    # The next poll is held, then answered with what the robot said while it moved: a slow answer.
+    held: list[Any] = []
+    robot_state = re.compile(r"/api/v1/robot/state$")
+    session.context.route(robot_state, lambda route: held.append(route) if not held else route.continue_())
+    deadline = time.monotonic() + 60.0
+    while not held:
+        assert time.monotonic() < deadline, "the page did not poll the robot's state within 60 s"
+        page.wait_for_timeout(100)
+    _click(page.locator("#estop"))
+    estop_banner = page.locator('.banner.error[data-key="estop"]')
+    expect(estop_banner).to_be_visible(timeout=60_000)
+    expect(page.locator("#robot-status")).to_contain_text("E-STOP LATCHED", timeout=60_000)
+    with page.expect_response(robot_state):
+        held[0].fulfill(status=200, content_type="application/json", body=json.dumps(moving))
+    # The page handles that answer before the poll after it (one thread; the next poll comes 2 s later).
+    with page.expect_request(robot_state, timeout=60_000):
+        pass
+    expect(estop_banner).to_have_count(1)
+    expect(page.locator("#robot-status")).to_contain_text("E-STOP LATCHED")
+    session.context.unroute(robot_state)
     assert not session.errors, session.errors
