@@ -50,22 +50,29 @@ def _confirm_checklist(page: Any) -> None:
     _click(page.locator("#confirm-ok"))
 
 
-def test_after_an_estop_and_a_reset_the_stop_is_acknowledged_before_the_next_start(
-    console: Any, clinic: dict[str, Any]
-) -> None:
-    booking = _book(clinic, hours_after_the_clinic_booking=5)
+def _running_session(console: Any, clinic: dict[str, Any], hours_after_the_clinic_booking: int) -> tuple[Any, Any]:
+    """A browser session whose booking's run is moving: (session, page)."""
+    booking = _book(clinic, hours_after_the_clinic_booking)
     session = console(viewport=VIEWPORT)
     # Without the 3D view: its software WebGL starves this page's main thread on a loaded machine, and it is
-    # not what this test is about (the page keeps its place: "3D view unavailable").
+    # not what these tests are about (the page keeps its place: "3D view unavailable").
     session.context.route(re.compile(r"/api/v1/viz/view/"), lambda route: route.abort())
     session.page.set_default_timeout(60_000)
     page = session.login()
     session.go(f"#/session/{booking['id']}")
-    start_button, reset_button = page.locator("#start-button"), page.locator("#reset-button")
+    start_button = page.locator("#start-button")
     expect(start_button).to_be_enabled(timeout=30_000)
     _click(start_button)
     _confirm_checklist(page)
     expect(page.locator("#run-state")).to_have_attribute("data-state", "running", timeout=120_000)
+    return session, page
+
+
+def test_after_an_estop_and_a_reset_the_stop_is_acknowledged_before_the_next_start(
+    console: Any, clinic: dict[str, Any]
+) -> None:
+    session, page = _running_session(console, clinic, hours_after_the_clinic_booking=5)
+    start_button, reset_button = page.locator("#start-button"), page.locator("#reset-button")
 
     _click(page.locator("#estop"))
     estop_banner = page.locator('.banner.error[data-key="estop"]')
@@ -140,20 +147,10 @@ def test_start_is_enabled_only_once_a_click_opens_the_checklist(console: Any, cl
 def test_a_robot_state_asked_before_the_stop_and_answered_after_it_does_not_undo_it(
     console: Any, clinic: dict[str, Any]
 ) -> None:
-    """CI failure, 2026-12-08: the page polls /robot/state every 2 s beside the live telemetry. A poll asked while
-    the run moved and answered after the telemetry had shown the emergency stop took the top bar back to MOVING
-    and cleared the stop's banner for good, while the robot was latched."""
-    booking = _book(clinic, hours_after_the_clinic_booking=7)
-    session = console(viewport=VIEWPORT)
-    session.context.route(re.compile(r"/api/v1/viz/view/"), lambda route: route.abort())
-    session.page.set_default_timeout(60_000)
-    page = session.login()
-    session.go(f"#/session/{booking['id']}")
-    start_button = page.locator("#start-button")
-    expect(start_button).to_be_enabled(timeout=30_000)
-    _click(start_button)
-    _confirm_checklist(page)
-    expect(page.locator("#run-state")).to_have_attribute("data-state", "running", timeout=120_000)
+    """A full test run's failure, 2026-12-08: the page polls /robot/state every 2 s beside the live telemetry. A
+    poll asked while the run moved and answered after the telemetry had shown the emergency stop took the top bar
+    back to MOVING and cleared the stop's banner for good, while the robot was latched."""
+    session, page = _running_session(console, clinic, hours_after_the_clinic_booking=7)
     headers = {"Authorization": f"Bearer {clinic['admin_token']}"}
     moving = httpx.get(f"{clinic['api']}/robot/state", headers=headers, timeout=60).json()
     assert moving["state"] == "running", moving
