@@ -191,7 +191,7 @@ class ShapingParameters:
 
 def shaping_sections(params: ShapingParameters, sample_period_s: float) -> np.ndarray:
     """The shaper's sos (S, 6) at this sample period; refuses a design that leaves the first mode exposed."""
-    import scipy.signal  # here: the processes that only validate a prescription never load it
+    import scipy.signal
 
     require_sample_period(sample_period_s)
     nyquist_hz = 0.5 / sample_period_s
@@ -220,7 +220,7 @@ def shaping_sections(params: ShapingParameters, sample_period_s: float) -> np.nd
 
 def attenuation_db(sos: np.ndarray, frequencies_hz: np.ndarray, sample_period_s: float) -> np.ndarray:
     """Attenuation (dB, positive = quieter) of a sos filter at the given frequencies."""
-    import scipy.signal  # here: the processes that only validate a prescription never load it
+    import scipy.signal
 
     _, response = scipy.signal.sosfreqz(sos, worN=np.asarray(frequencies_hz, dtype=float), fs=1.0 / sample_period_s)
     return -20.0 * np.log10(np.maximum(np.abs(response), 1e-300))
